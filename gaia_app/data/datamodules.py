@@ -1,0 +1,160 @@
+"""LightningDataModules: frames (image tokenizers), clips (video models), token caches (world models)."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from typing import Any
+
+import lightning as L
+import numpy as np
+from torch.utils.data import DataLoader, Dataset, Subset
+
+from gaia_app.data.collate import collate_clips, collate_frames
+from gaia_app.data.datasets import ClipsDataset, ClipSource, FramesDataset
+from gaia_app.data.sampling import BalancedSampler, balancing_weights, clip_features
+from gaia_app.data.token_cache import TokenWindows, find_segments, load_segment, split_spans
+
+def split_by_clip(source: ClipSource, val_fraction: float, seed: int) -> tuple[Subset, Subset]:
+    """Random clip-level split: every frame of a clip lands on one side only."""
+    n = len(source)
+    if n < 2:
+        raise ValueError(f"split_by_clip: need at least 2 clips to split, got {n}; give val_source explicitly")
+    order = np.random.default_rng(seed).permutation(n)
+    n_val = min(n - 1, max(1, int(round(val_fraction * n))))
+    return Subset(source, sorted(order[n_val:].tolist())), Subset(source, sorted(order[:n_val].tolist()))
+
+
+def source_features(source: ClipSource, names: Sequence[str]) -> dict[str, list]:
+    """Balancing features of every clip; uses a cheap `describe(i)` when the source has one."""
+    describe = getattr(source, "describe", None)
+    rows = [describe(i) if describe else clip_features(source[i], names) for i in range(len(source))]
+    return {name: [row[name] for row in rows] for name in names}
+
+
+class ClipSourceDataModule(L.LightningDataModule, ABC):
+    """Common part: train/val clip sources, the clip-level split, loaders and balancing.
+
+    Args:
+        source: clip source for training (and validation when val_source is None).
+        val_source: separate validation source (e.g. the synthetic world with another seed).
+        val_fraction, split_seed: clip-level split of `source` when val_source is None.
+        batch_size, num_workers: loader settings.
+        height, width: model resolution (paper 288×512); resize_mode 'crop' keeps the aspect.
+        balance: None, or {"features": {name: bins}, "exponent": float} (GAIA-1 §3).
+    """
+
+    def __init__(self, source: ClipSource, val_source: ClipSource | None = None, val_fraction: float = 0.1,
+                 split_seed: int = 0, batch_size: int = 8, num_workers: int = 0, height: int = 64, width: int = 112,
+                 resize_mode: str = "crop", balance: dict[str, Any] | None = None):
+        super().__init__()
+        self.source, self.val_source = source, val_source
+        self.val_fraction, self.split_seed = val_fraction, split_seed
+        self.batch_size, self.num_workers = batch_size, num_workers
+        self.height, self.width, self.resize_mode = height, width, resize_mode
+        self.balance = balance
+        self.train_set: Dataset | None = None
+        self.val_set: Dataset | None = None
+
+    @abstractmethod
+    def wrap(self, source: ClipSource, train: bool) -> Dataset:
+        """The sample-producing dataset over a clip source."""
+
+    @abstractmethod
+    def collate(self, samples: list) -> Any:
+        """Batch a list of samples."""
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is not None:
+            return
+        train, val = (self.source, self.val_source) if self.val_source is not None else split_by_clip(
+            self.source, self.val_fraction, self.split_seed)
+        self.train_clips, self.val_clips = train, val
+        self.train_set, self.val_set = self.wrap(train, True), self.wrap(val, False)
+
+    def _sampler(self) -> BalancedSampler | None:
+        if not self.balance:
+            return None
+        features = dict(self.balance["features"])
+        weights = balancing_weights(source_features(self.train_clips, list(features)), features, self.balance["exponent"])
+        return BalancedSampler(weights, seed=self.split_seed)
+
+    def _loader(self, dataset: Dataset, shuffle: bool, sampler=None) -> DataLoader:
+        return DataLoader(dataset, batch_size=self.batch_size, shuffle=shuffle and sampler is None, sampler=sampler,
+                          num_workers=self.num_workers, collate_fn=self.collate, persistent_workers=self.num_workers > 0,
+                          drop_last=shuffle and len(dataset) >= self.batch_size)
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.train_set, shuffle=True, sampler=self._sampler())
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self.val_set, shuffle=False)
+
+
+class FrameDataModule(ClipSourceDataModule):
+    """Single frames for image tokenizers: batches {"image": (b·k·v, 3, H, W)}.
+
+    frames_per_clip: k frames drawn from each clip per item (amortises decoding a clip).
+    """
+
+    def __init__(self, *args, frames_per_clip: int = 1, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.frames_per_clip = frames_per_clip
+
+    def wrap(self, source: ClipSource, train: bool) -> Dataset:
+        return FramesDataset(source, self.height, self.width, self.frames_per_clip, self.resize_mode)
+
+    def collate(self, samples: list) -> Any:
+        return collate_frames(samples)
+
+
+class ClipDataModule(ClipSourceDataModule):
+    """Video windows with every condition: batches from `collate_clips` ("video": (b, v, t, 3, H, W), …).
+
+    clip_len: steps per window; fps: resampling rate by timestamps (GAIA-1 world model 6.25 Hz),
+    None keeps the source rate; cameras: camera names to keep, in order (None keeps all).
+    """
+
+    def __init__(self, *args, clip_len: int = 8, fps: float | None = None, cameras: Sequence[str] | None = None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.clip_len, self.fps, self.cameras = clip_len, fps, cameras
+
+    def wrap(self, source: ClipSource, train: bool) -> Dataset:
+        return ClipsDataset(source, self.height, self.width, self.clip_len, self.fps, self.cameras,
+                            self.resize_mode, random_window=train)
+
+    def collate(self, samples: list) -> Any:
+        return collate_clips(samples)
+
+
+class TokenCacheDataModule(L.LightningDataModule):
+    """Windows of cached tokens for world models: batches {"tokens": (b, t, n), "actions"?: (b, t, 2)}.
+
+    Args:
+        path: a token `.npy` file or a folder of them (see token_cache.py).
+        seq_len: steps per window (GAIA-1 T = 26). stride: steps between window starts.
+        frame_stride: keep every k-th step (e.g. 4 for 25 → 6.25 Hz; 3 for commaVQ's 20 → 6.67 Hz).
+        val_fraction: share of segments (or of the only segment's tail) held out.
+    """
+
+    def __init__(self, path: str, seq_len: int = 16, stride: int = 1, frame_stride: int = 1, val_fraction: float = 0.1,
+                 batch_size: int = 8, num_workers: int = 0):
+        super().__init__()
+        self.path, self.seq_len, self.stride, self.frame_stride = path, seq_len, stride, frame_stride
+        self.val_fraction, self.batch_size, self.num_workers = val_fraction, batch_size, num_workers
+        self.train_set: TokenWindows | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is not None:
+            return
+        segments = [load_segment(p, self.frame_stride) for p in find_segments(self.path)]
+        train, val = split_spans(segments, self.val_fraction, self.seq_len)
+        self.vocab_size = int(max(s.tokens.max() for s in segments)) + 1
+        self.train_set = TokenWindows(segments, train, self.seq_len, self.stride)
+        self.val_set = TokenWindows(segments, val, self.seq_len, self.seq_len)
+
+    def train_dataloader(self) -> DataLoader:
+        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, num_workers=self.num_workers, drop_last=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return DataLoader(self.val_set, batch_size=self.batch_size, num_workers=self.num_workers)

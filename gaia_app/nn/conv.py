@@ -1,0 +1,98 @@
+"""Convolutional building blocks: residual blocks and down/up-sampling stacks (VQGAN-style U-Net halves).
+
+Legend: b batch, c channels, h w spatial size.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+def group_norm(channels: int) -> nn.GroupNorm:
+    """GroupNorm with the largest group count ≤ 32 that divides `channels`."""
+    groups = next(g for g in range(min(32, channels), 0, -1) if channels % g == 0)
+    return nn.GroupNorm(groups, channels, eps=1e-6)
+
+
+class ResBlock(nn.Module):
+    """Pre-norm residual block: (b, c_in, h, w) → (b, c_out, h, w)."""
+
+    def __init__(self, in_channels: int, out_channels: int):
+        super().__init__()
+        self.norm1 = group_norm(in_channels)
+        self.conv1 = nn.Conv2d(in_channels, out_channels, 3, padding=1)
+        self.norm2 = group_norm(out_channels)
+        self.conv2 = nn.Conv2d(out_channels, out_channels, 3, padding=1)
+        self.skip = nn.Conv2d(in_channels, out_channels, 1) if in_channels != out_channels else nn.Identity()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = self.conv1(F.silu(self.norm1(x)))
+        h = self.conv2(F.silu(self.norm2(h)))
+        return self.skip(x) + h
+
+
+class ConvEncoder(nn.Module):
+    """Fully convolutional encoder: (b, c_in, h, w) → (b, c_out, h / 2^(len(mults)-1), w / 2^(len(mults)-1)).
+
+    Args:
+        channels: base width; stage i has channels * mults[i].
+        mults: per-stage multipliers; each stage but the last halves the resolution.
+        blocks_per_stage: residual blocks per stage.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, channels: int, mults: Sequence[int], blocks_per_stage: int):
+        super().__init__()
+        widths = [channels * m for m in mults]
+        self.stem = nn.Conv2d(in_channels, widths[0], 3, padding=1)
+        stages: list[nn.Module] = []
+        prev = widths[0]
+        for i, width in enumerate(widths):
+            blocks: list[nn.Module] = []
+            for _ in range(blocks_per_stage):
+                blocks.append(ResBlock(prev, width))
+                prev = width
+            if i < len(widths) - 1:
+                blocks.append(nn.Conv2d(width, width, 3, stride=2, padding=1))
+            stages.append(nn.Sequential(*blocks))
+        self.stages = nn.ModuleList(stages)
+        self.mid = ResBlock(prev, prev)
+        self.out = nn.Sequential(group_norm(prev), nn.SiLU(), nn.Conv2d(prev, out_channels, 3, padding=1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = self.stem(x)
+        for stage in self.stages:
+            h = stage(h)
+        return self.out(self.mid(h))
+
+
+class ConvDecoder(nn.Module):
+    """Mirror of ConvEncoder: (b, c_in, h, w) → (b, c_out, h·2^(len(mults)-1), w·2^(len(mults)-1))."""
+
+    def __init__(self, in_channels: int, out_channels: int, channels: int, mults: Sequence[int], blocks_per_stage: int):
+        super().__init__()
+        widths = [channels * m for m in reversed(mults)]
+        self.stem = nn.Conv2d(in_channels, widths[0], 3, padding=1)
+        self.mid = ResBlock(widths[0], widths[0])
+        stages: list[nn.Module] = []
+        prev = widths[0]
+        for i, width in enumerate(widths):
+            blocks: list[nn.Module] = []
+            for _ in range(blocks_per_stage):
+                blocks.append(ResBlock(prev, width))
+                prev = width
+            if i < len(widths) - 1:
+                blocks.append(nn.Upsample(scale_factor=2.0, mode="nearest"))
+                blocks.append(nn.Conv2d(width, width, 3, padding=1))
+            stages.append(nn.Sequential(*blocks))
+        self.stages = nn.ModuleList(stages)
+        self.out = nn.Sequential(group_norm(prev), nn.SiLU(), nn.Conv2d(prev, out_channels, 3, padding=1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = self.mid(self.stem(x))
+        for stage in self.stages:
+            h = stage(h)
+        return self.out(h)

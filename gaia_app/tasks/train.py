@@ -1,0 +1,62 @@
+"""`train(cfg)`: build data, model, callbacks, loggers and trainer from the config and fit."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from gaia_app.utils.run_dir import save_resolved_config
+
+log = logging.getLogger(__name__)
+
+
+def instantiate_list(node: DictConfig | None) -> list[Any]:
+    """Instantiate every entry of a dict of `_target_` nodes (callbacks, loggers); null entries are skipped."""
+    if not node:
+        return []
+    return [instantiate(v) for v in node.values() if v is not None and "_target_" in v]
+
+
+def resume_path(ckpt_path: str | None, run_dir: Path) -> str | None:
+    """`ckpt_path=last` resumes from this run dir's last.ckpt if present; a path must exist."""
+    if ckpt_path in (None, ""):
+        return None
+    if ckpt_path == "last":
+        last = run_dir / "checkpoints" / "last.ckpt"
+        return str(last) if last.exists() else None
+    if not Path(ckpt_path).exists():
+        raise FileNotFoundError(f"ckpt_path={ckpt_path}: no such checkpoint")
+    return ckpt_path
+
+
+def build(cfg: DictConfig) -> dict[str, Any]:
+    """Instantiate datamodule, model, callbacks, loggers and trainer (no fitting)."""
+    datamodule = instantiate(cfg.data)
+    model = instantiate(cfg.model)
+    # the model's own config travels in the checkpoint so generate.py can rebuild it without Hydra
+    model.save_hyperparameters({"model_cfg": OmegaConf.to_container(cfg.model, resolve=True)})
+    callbacks = instantiate_list(cfg.get("callbacks"))
+    loggers = instantiate_list(cfg.get("logger"))
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+    return {"datamodule": datamodule, "model": model, "trainer": trainer}
+
+
+def train(cfg: DictConfig) -> dict[str, Any]:
+    """Seed, save the resolved config, fit (optionally resuming), validate; return metrics and objects."""
+    L.seed_everything(cfg.seed, workers=True)
+    run_dir = Path(cfg.paths.output_dir)
+    save_resolved_config(cfg, run_dir)
+    objects = build(cfg)
+    trainer, model, datamodule = objects["trainer"], objects["model"], objects["datamodule"]
+    ckpt = resume_path(cfg.get("ckpt_path"), run_dir)
+    if ckpt:
+        log.info("resuming from %s", ckpt)
+    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt)
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+    log.info("run dir: %s", run_dir)
+    return {"metrics": metrics, "run_dir": run_dir, **objects}

@@ -1,0 +1,21 @@
+"""Paper presets built on the meta device (no memory): parameter counts within 10% of the papers."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+from tests.conftest import CONF_DIR
+
+PAPER_SIZES = {"gaia1_tokenizer_paper": 0.3e9}  # GAIA-1 §4.1
+
+
+@pytest.mark.parametrize("preset", sorted(PAPER_SIZES))
+def test_paper_preset_parameter_count(preset: str) -> None:
+    cfg = OmegaConf.load(CONF_DIR / "model" / "net" / f"{preset}.yaml")
+    with torch.device("meta"):
+        net = instantiate(cfg)()
+    count = sum(p.numel() for p in net.parameters())
+    assert count == pytest.approx(PAPER_SIZES[preset], rel=0.10), f"{preset}: {count / 1e6:.1f}M parameters"
