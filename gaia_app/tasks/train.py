@@ -11,6 +11,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from gaia_app.utils.run_dir import save_resolved_config
+from gaia_app.viz.rerun_logger import rerun_logger_of
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +54,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     save_resolved_config(cfg, run_dir)
     objects = build(cfg)
     trainer, model, datamodule = objects["trainer"], objects["model"], objects["datamodule"]
+    if (recording := rerun_logger_of(trainer)) is not None:
+        recording.log_config(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]))
     ckpt = resume_path(cfg.get("ckpt_path"), run_dir)
     if ckpt:
         log.info("resuming from %s", ckpt)

@@ -1,0 +1,79 @@
+"""Rerun viewer layouts (blueprints) for training runs and multi-camera rigs.
+
+Entity paths used across gaia_app (see docs/rerun.md):
+  /metrics/<key>      scalars on the `step` timeline (`train/loss` -> /metrics/train/loss)
+  /hparams, /config   static Markdown documents
+  /<stage>/<name>     media from RerunMediaCallback (`val/reconstruction`)
+  /log                text logs
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import rerun.blueprint as rrb
+
+
+def _media_view(path: str) -> rrb.View:
+    """A 2D view of one image/video entity, titled by its path."""
+    path = "/" + path.strip("/")
+    return rrb.Spatial2DView(origin=path, name=path.lstrip("/"))
+
+
+def training_blueprint(
+    media_paths: Sequence[str] = (),
+    metrics_origin: str = "/metrics",
+    grid_columns: int = 3,
+) -> rrb.Blueprint:
+    """Metrics on the left; media grid, hyperparameters and text logs on the right.
+
+    media_paths: entity paths of images/videos/token maps to show in the grid. When empty the
+        viewer adds views for unlisted entities by itself (auto_views), so media still appear.
+    """
+    docs = rrb.Tabs(
+        rrb.TextDocumentView(origin="/hparams", name="hparams"),
+        rrb.TextDocumentView(origin="/config", name="config"),
+        rrb.TextLogView(origin="/", name="log"),
+    )
+    right: list[rrb.Container | rrb.View] = [docs]
+    if media_paths:
+        grid = rrb.Grid(*[_media_view(p) for p in media_paths], grid_columns=grid_columns)
+        right.insert(0, grid)
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.TimeSeriesView(origin=metrics_origin, name="metrics"),
+            rrb.Vertical(*right, row_shares=[3, 1] if media_paths else None),
+            column_shares=[2, 3],
+        ),
+        auto_views=not media_paths,
+        collapse_panels=True,
+    )
+
+
+def rig_blueprint(
+    camera_names: Sequence[str],
+    rig_origin: str = "/world/rig",
+    world_origin: str = "/world",
+    scalars_origin: str = "/actions",
+    text_origin: str = "/text",
+    grid_columns: int = 3,
+) -> rrb.Blueprint:
+    """Multi-camera rollout: one 2D view per camera in a grid, the 3D world, actions and text.
+
+    camera_names: entity names under `rig_origin` (`front` -> /world/rig/front), in display order.
+    Frames live on the `frame` timeline; each camera entity carries its Pinhole and extrinsics,
+    so the 3D view shows the frusta and the 2D views show images with projected boxes.
+    """
+    cams = [rrb.Spatial2DView(origin=f"{rig_origin}/{c}", name=c) for c in camera_names]
+    return rrb.Blueprint(
+        rrb.Vertical(
+            rrb.Grid(*cams, grid_columns=grid_columns),
+            rrb.Horizontal(
+                rrb.Spatial3DView(origin=world_origin, name="world"),
+                rrb.TimeSeriesView(origin=scalars_origin, name="actions"),
+                rrb.TextLogView(origin=text_origin, name="text"),
+            ),
+            row_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )
