@@ -66,7 +66,7 @@ def test_generate_reconstructs_from_checkpoint(trained_run: Path, tmp_path: Path
 def test_lightning_module_overfits_a_batch(tmp_path: Path) -> None:
     """Through the full Lightning stack: the train loss on two repeated batches falls by ≥ 3×."""
     cfg = compose_config("train", [*TINY, "debug=overfit", "trainer.max_steps=80", "trainer.val_check_interval=80",
-                                   "logger=csv", "callbacks=none", "trainer.enable_checkpointing=false",
+                                   "logger=csv", "callbacks=none", "++trainer.enable_checkpointing=false",
                                    "trainer.log_every_n_steps=1", "model.sched.warmup_steps=5"], tmp_path)
     train(cfg)
     import csv
@@ -79,7 +79,7 @@ def test_lightning_module_overfits_a_batch(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_cli_help_lists_groups_and_fast_dev_run(tmp_path: Path) -> None:
     help_text = subprocess.run([sys.executable, "train.py", "--help"], cwd=ROOT, capture_output=True, text=True, check=True).stdout
-    for group in ("data:", "model:", "trainer:", "debug:", "logger:", "experiment:"):
+    for group in ("data:", "model:", "trainer:", "debug:", "logger:", "experiment/gaia1:"):
         assert group in help_text
     subprocess.run([sys.executable, "train.py", "debug=fdr", "data=synthetic_frames_tiny", f"hydra.run.dir={tmp_path}"],
                    cwd=ROOT, check=True, capture_output=True, text=True, timeout=300)

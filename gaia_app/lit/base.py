@@ -36,7 +36,7 @@ class GaiaModule(L.LightningModule):
         self.configure_model()
         params = [p for p in self.trainer.model.parameters() if p.requires_grad] if self._trainer else self.parameters()
         optimizer = self.optim_factory(params)
-        if self.sched_factory is None:
+        if not self.sched_factory:  # sched=constant composes to an empty node
             return optimizer
         scheduler = self.sched_factory(optimizer)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}

@@ -58,7 +58,7 @@ def reconstruct(cfg: DictConfig, module: ImageTokenizerModule, run_dir: Path) ->
         clip = fit_to_resolution(clips[i], datamodule.height, datamodule.width, datamodule.resize_mode)
         video = to_float(torch.from_numpy(clip.frames))
         out = pipeline(video)
-        names = [c.name for c in clip.cameras] if clip.cameras else [f"view{v}" for v in range(clip.num_views)]
+        names = [c.name for c in clip.cameras] if clip.cameras else clip.meta.get("camera_names", [f"view{v}" for v in range(clip.num_views)])
         for v, camera in enumerate(names):
             write_video(run_dir / f"{clip.clip_id}_{camera}.mp4", side_by_side(video[v], out.reconstruction[v]), clip.fps or 25.0)
             log_reconstruction(rec, clip.clip_id, camera, video, out, v, codebook)

@@ -88,3 +88,62 @@ def test_tokenizer_overfits_a_batch() -> None:
         opt.step()
         losses.append(F.mse_loss(out.reconstruction, x).item())
     assert losses[-1] < losses[0] / 4, (losses[0], losses[-1])
+
+
+def test_distill_head_projects_quantized_features_to_teacher_dim() -> None:
+    net = tiny(distill_dim=24)
+    out = net(torch.rand(2, 3, 16, 16) * 2 - 1)
+    assert net.distill(out.quantized).shape == (2, 24, 4, 4)
+    with pytest.raises(ValueError, match="distill_dim=0"):
+        tiny().distill(out.quantized)
+
+
+def test_last_layer_is_the_decoder_output_convolution() -> None:
+    net = tiny()
+    assert net.last_layer is net.decoder.out[-1].weight
+    assert net.last_layer.shape[0] == 3  # RGB out
+
+
+# ---- GAN parts of the reconstruction loss (GAIA-1 §2.2, ref. [33]) --------------------------------
+
+
+def test_patch_discriminator_scores_overlapping_patches() -> None:
+    from gaia_app.nn.discriminator import PatchDiscriminator
+
+    torch.manual_seed(0)
+    disc = PatchDiscriminator(channels=8, num_layers=3)
+    logits = disc(torch.rand(2, 3, 64, 64) * 2 - 1)
+    # three stride-2 layers then two stride-1 4×4 convs: 64 → 8 → 7 → 6
+    assert logits.shape == (2, 1, 6, 6)
+
+
+def test_hinge_losses() -> None:
+    from gaia_app.nn.discriminator import hinge_discriminator_loss, hinge_generator_loss
+
+    confident = hinge_discriminator_loss(torch.full((2, 1, 3, 3), 2.0), torch.full((2, 1, 3, 3), -3.0))
+    assert confident.item() == 0.0  # real > 1 and fake < -1: no loss
+    undecided = hinge_discriminator_loss(torch.zeros(1, 1, 2, 2), torch.zeros(1, 1, 2, 2))
+    assert undecided.item() == pytest.approx(1.0)
+    assert hinge_generator_loss(torch.tensor([[1.0, 3.0]])).item() == pytest.approx(-2.0)
+
+
+def test_adaptive_weight_matches_hand_computation() -> None:
+    """Last layer W = [1, 2] on a fixed hidden h = [3, 4], output o = W·h = 11.
+    rec = (o − 10)²  → ∇_W rec = 2(o − 10)·h, norm 2·1·5 = 10;
+    gan = −0.5·o     → ∇_W gan = −0.5·h,       norm 0.5·5 = 2.5;
+    weight = 10 / (2.5 + 1e-4)."""
+    from gaia_app.nn.discriminator import adaptive_gan_weight
+
+    last = torch.nn.Linear(2, 1, bias=False)
+    with torch.no_grad():
+        last.weight.copy_(torch.tensor([[1.0, 2.0]]))
+    hidden = torch.tensor([3.0, 4.0], requires_grad=True)  # stands in for the rest of the decoder
+    out = last(hidden)
+    rec, gan = (out - 10.0).pow(2).sum(), (-0.5 * out).sum()
+    weight = adaptive_gan_weight(rec, gan, last.weight)
+    assert weight.item() == pytest.approx(10.0 / (2.5 + 1e-4), rel=1e-6)
+    assert not weight.requires_grad
+    assert adaptive_gan_weight(rec, gan, last.weight, max_weight=2.0).item() == 2.0  # clamped
+    # both graphs survive for the backward pass that follows
+    (rec + weight * gan).backward()
+    assert last.weight.grad is not None

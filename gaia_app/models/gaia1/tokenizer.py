@@ -2,7 +2,7 @@
 
 Legend:
     b batch, c = 3 RGB channels, H W image size, h = H/D, w = W/D token grid, D downsampling,
-    d feature channels, k codebook size.
+    d feature channels, k codebook size, f distillation (DINO teacher) feature dim.
 
 Images are float in [-1, 1]. Only the encoder (`encode`) is part of the final GAIA-1 model; the
 decoder exists to train it (§2.2) and to preview tokens.
@@ -44,6 +44,9 @@ class ImageTokenizer(nn.Module):
         codebook_size: K (paper 8192).
         code_dim: dimension of the factorised look-up space (ViT-VQGAN, ref. [34]).
         commitment_beta: VQ-VAE commitment weight.
+        distill_dim: f, channels of the DINO teacher's features (384 for ViT-S/16, 768 for ViT-B/16);
+            adds the trained 1×1 projection of the quantised features used by the distillation loss
+            (GAIA-1 §2.2). 0: no projection.
     """
 
     block_types: tuple[type[nn.Module], ...] = (ResBlock,)
@@ -57,6 +60,7 @@ class ImageTokenizer(nn.Module):
         codebook_size: int = 8192,
         code_dim: int = 32,
         commitment_beta: float = 0.25,
+        distill_dim: int = 0,
     ):
         super().__init__()
         self.downsampling = 2 ** (len(channel_mults) - 1)
@@ -64,6 +68,8 @@ class ImageTokenizer(nn.Module):
         self.encoder = ConvEncoder(3, latent_dim, channels, channel_mults, blocks_per_stage)
         self.quantizer = FactorizedVectorQuantizer(latent_dim, codebook_size, code_dim, commitment_beta)
         self.decoder = ConvDecoder(latent_dim, 3, channels, channel_mults, blocks_per_stage)
+        self.distill_dim = distill_dim
+        self.distill_head = nn.Conv2d(latent_dim, distill_dim, 1) if distill_dim else None
 
     def _check_size(self, x: torch.Tensor) -> None:
         d = self.downsampling
@@ -92,6 +98,18 @@ class ImageTokenizer(nn.Module):
     def decode(self, tokens: torch.Tensor) -> torch.Tensor:
         """tokens (b, h, w) int64 → images (b, 3, H, W), unclamped."""
         return self.decoder(self.embed(tokens))
+
+    def distill(self, quantized: torch.Tensor) -> torch.Tensor:
+        """Quantised features (b, d, h, w) → (b, f, h, w) in the DINO teacher's feature space (GAIA-1 §2.2)."""
+        if self.distill_head is None:
+            raise ValueError("ImageTokenizer was built with distill_dim=0: "
+                             "set the net's distill_dim to the teacher's feature dim")
+        return self.distill_head(quantized)
+
+    @property
+    def last_layer(self) -> nn.Parameter:
+        """Weight of the decoder's output convolution, where the GAN loss is balanced against reconstruction."""
+        return self.decoder.out[-1].weight
 
     def bits_per_image(self, height: int, width: int) -> float:
         """Bits needed for one image's tokens (paper §4.1 compression ratio denominator)."""
