@@ -1,0 +1,69 @@
+"""`SyntheticClipDataset`: clips of the synthetic world generated on the fly.
+
+Clip i is generated from `np.random.default_rng([seed, i])`: it depends only on (seed, i) and the
+knobs, never on global random state, the worker process or the order of access, so DataLoader
+workers and the main process return identical clips.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from gaia_app.data.clip import Clip
+from gaia_app.data.synthetic.generate import SyntheticSample, WorldConfig, clip_meta, sample_from_rng
+from gaia_app.data.synthetic.labels import frame_meta
+from gaia_app.data.synthetic.planning import make_plan
+from gaia_app.data.synthetic.scenario import Scenario, draw_setting
+from gaia_app.data.synthetic.simulate import simulate
+
+
+class SyntheticClipDataset(torch.utils.data.Dataset):
+    """`num_clips` synthetic clips; `ds[i]` is a `Clip` (see generate_clip for the knobs)."""
+
+    def __init__(self, num_clips: int = 64, seed: int = 0, height: int = 64, width: int = 112,
+                 cameras: int | Sequence[str] = ("front",), clip_len: int = 8, fps: float = 25.0,
+                 weather_mix: Mapping[str, float] | None = None, time_of_day_mix: Mapping[str, float] | None = None,
+                 agent_density: float = 1.0, scenario: Scenario | None = None):
+        if isinstance(num_clips, bool) or not isinstance(num_clips, (int, np.integer)) or num_clips < 1:
+            raise ValueError(f"num_clips: expected a positive integer, got {num_clips!r}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
+        if scenario is not None and not isinstance(scenario, Scenario):
+            raise ValueError(f"scenario: expected a Scenario or None, got {type(scenario).__name__}")
+        self.num_clips, self.seed, self.scenario = int(num_clips), int(seed), scenario
+        cameras = cameras if isinstance(cameras, (int, np.integer)) else list(cameras)  # Hydra passes ListConfig
+        self.config = WorldConfig.make(height, width, cameras, clip_len, fps, weather_mix, time_of_day_mix, agent_density)
+
+    def __len__(self) -> int:
+        return self.num_clips
+
+    def _rng(self, index: int) -> np.random.Generator:
+        if not -self.num_clips <= index < self.num_clips:
+            raise IndexError(f"index {index} out of range for {self.num_clips} clips")
+        return np.random.default_rng([self.seed, index % self.num_clips])
+
+    def sample(self, index: int) -> SyntheticSample:
+        """Clip `index` with its simulation (for instance masks)."""
+        i = int(index) % self.num_clips if index >= 0 else self.num_clips + int(index)
+        return sample_from_rng(self._rng(int(index)), self.config, self.scenario, f"synthetic-s{self.seed}-{i:06d}",
+                               {"seed": self.seed, "index": i})
+
+    def __getitem__(self, index: int) -> Clip:
+        return self.sample(index).clip
+
+    def describe(self, index: int) -> dict[str, Any]:
+        """Clip-level metadata plus mean 'speed' and 'curvature' of clip `index`, from the
+        simulation only (no rendering): cheap features for balanced sampling."""
+        rng = self._rng(int(index))
+        config, scenario = self.config, self.scenario or Scenario()
+        setting = draw_setting(rng, scenario, config.weather_mix, config.time_of_day_mix)
+        plan = make_plan(rng, scenario, setting, config.clip_len, config.fps, config.agent_density)
+        states = simulate(plan, config.clip_len, config.fps)
+        meta = clip_meta(plan, frame_meta(plan.world, states[0]), {"seed": self.seed, "index": int(index)})
+        meta["speed"] = float(np.mean([s.speed for s in states]))
+        meta["curvature"] = float(np.mean([s.curvature for s in states]))
+        return meta
