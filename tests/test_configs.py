@@ -31,7 +31,7 @@ def resolve_job(cfg) -> dict:
 @pytest.fixture(scope="module")
 def clip_root(tmp_path_factory) -> Path:
     """Two exported synthetic clips in the clip-folder format, for the video_folder data options."""
-    from gaia_app.data.clip_folder import write_clip
+    from gaia_app.data.clip_writer import write_clip
     from gaia_app.data.synthetic import generate_clip
 
     root = tmp_path_factory.mktemp("clips")

@@ -35,6 +35,22 @@ class ResBlock(nn.Module):
         return self.skip(x) + h
 
 
+def residual_stage(in_channels: int, out_channels: int, blocks: int, resample: nn.Module | None) -> nn.Sequential:
+    """`blocks` ResBlocks (the first changes the width), then an optional resampling layer."""
+    layers: list[nn.Module] = [ResBlock(in_channels if i == 0 else out_channels, out_channels) for i in range(blocks)]
+    return nn.Sequential(*layers, *([resample] if resample is not None else []))
+
+
+def downsample(channels: int) -> nn.Module:
+    """Halve h and w with a strided convolution."""
+    return nn.Conv2d(channels, channels, 3, stride=2, padding=1)
+
+
+def upsample(channels: int) -> nn.Module:
+    """Double h and w: nearest-neighbour then a convolution (no checkerboard artefacts of transposed convs)."""
+    return nn.Sequential(nn.Upsample(scale_factor=2.0, mode="nearest"), nn.Conv2d(channels, channels, 3, padding=1))
+
+
 class ConvEncoder(nn.Module):
     """Fully convolutional encoder: (b, c_in, h, w) → (b, c_out, h / 2^(len(mults)-1), w / 2^(len(mults)-1)).
 
@@ -48,17 +64,11 @@ class ConvEncoder(nn.Module):
         super().__init__()
         widths = [channels * m for m in mults]
         self.stem = nn.Conv2d(in_channels, widths[0], 3, padding=1)
-        stages: list[nn.Module] = []
-        prev = widths[0]
-        for i, width in enumerate(widths):
-            blocks: list[nn.Module] = []
-            for _ in range(blocks_per_stage):
-                blocks.append(ResBlock(prev, width))
-                prev = width
-            if i < len(widths) - 1:
-                blocks.append(nn.Conv2d(width, width, 3, stride=2, padding=1))
-            stages.append(nn.Sequential(*blocks))
-        self.stages = nn.ModuleList(stages)
+        self.stages = nn.ModuleList(
+            residual_stage(prev, width, blocks_per_stage, downsample(width) if i < len(widths) - 1 else None)
+            for i, (prev, width) in enumerate(zip([widths[0], *widths], widths))
+        )
+        prev = widths[-1]
         self.mid = ResBlock(prev, prev)
         self.out = nn.Sequential(group_norm(prev), nn.SiLU(), nn.Conv2d(prev, out_channels, 3, padding=1))
 
@@ -77,18 +87,11 @@ class ConvDecoder(nn.Module):
         widths = [channels * m for m in reversed(mults)]
         self.stem = nn.Conv2d(in_channels, widths[0], 3, padding=1)
         self.mid = ResBlock(widths[0], widths[0])
-        stages: list[nn.Module] = []
-        prev = widths[0]
-        for i, width in enumerate(widths):
-            blocks: list[nn.Module] = []
-            for _ in range(blocks_per_stage):
-                blocks.append(ResBlock(prev, width))
-                prev = width
-            if i < len(widths) - 1:
-                blocks.append(nn.Upsample(scale_factor=2.0, mode="nearest"))
-                blocks.append(nn.Conv2d(width, width, 3, padding=1))
-            stages.append(nn.Sequential(*blocks))
-        self.stages = nn.ModuleList(stages)
+        self.stages = nn.ModuleList(
+            residual_stage(prev, width, blocks_per_stage, upsample(width) if i < len(widths) - 1 else None)
+            for i, (prev, width) in enumerate(zip([widths[0], *widths], widths))
+        )
+        prev = widths[-1]
         self.out = nn.Sequential(group_norm(prev), nn.SiLU(), nn.Conv2d(prev, out_channels, 3, padding=1))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

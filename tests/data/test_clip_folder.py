@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from gaia_app.data.clip import Clip, ClipError
-from gaia_app.data.clip_folder import ClipFolderDataset, inspect_clip, read_clip, write_clip
+from gaia_app.data.clip_folder import ClipFolderDataset, inspect_clip, read_clip
+from gaia_app.data.clip_writer import write_clip
 from gaia_app.data.video_io import VideoReadError, write_video
 
 

@@ -19,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from gaia_app.data.clip import ClipError
-from gaia_app.data.clip_folder import ClipFolderWriter, label_rows, meta_json
+from gaia_app.data.clip_writer import ClipFolderWriter, label_rows, meta_json
 from gaia_app.data.transforms import ResizePlan, plan_resize, resample_indices, resize_image
 from gaia_app.data.video_io import count_intact_packets, iter_frames, video_info
 

@@ -31,7 +31,7 @@ from tqdm import tqdm
 
 from gaia_app.data.actions import curvature_from_poses, quaternion_to_rotation, unwrap_yaw, yaw_from_rotation
 from gaia_app.data.clip import AGENT_CATEGORIES, AgentBoxes, CameraSpec, ClipError
-from gaia_app.data.clip_folder import ClipFolderWriter, label_rows, meta_json
+from gaia_app.data.clip_writer import ClipFolderWriter, label_rows, meta_json
 from gaia_app.data.transforms import plan_resize, resize_camera, resize_image
 from gaia_app.data.video_io import iter_frames, video_info
 

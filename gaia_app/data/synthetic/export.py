@@ -14,7 +14,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from gaia_app.data.clip_folder import write_clip
+from gaia_app.data.clip_writer import write_clip
 from gaia_app.data.synthetic.dataset import SyntheticClipDataset
 
 
