@@ -84,3 +84,20 @@ def test_cli_help_lists_groups_and_fast_dev_run(tmp_path: Path) -> None:
     subprocess.run([sys.executable, "train.py", "debug=fdr", "data=synthetic_frames_tiny", f"hydra.run.dir={tmp_path}"],
                    cwd=ROOT, check=True, capture_output=True, text=True, timeout=300)
     assert (tmp_path / "config_resolved.yaml").is_file()
+
+
+def test_trains_on_a_user_clip_folder(tmp_path: Path) -> None:
+    """data=video_folder_frames on exported clips: the user path, read through ClipFolderDataset."""
+    from gaia_app.data.clip_writer import write_clip
+    from gaia_app.data.synthetic import generate_clip
+
+    root = tmp_path / "clips"
+    for seed in range(3):
+        write_clip(generate_clip(seed=seed, height=72, width=128, cameras=["front"], clip_len=6, fps=25.0), root)
+    cfg = compose_config("train", [*TINY, "data=video_folder_frames", f"data.source.root={root}", "data.height=64",
+                                   "data.width=112", "data.batch_size=2", "data.num_workers=0", "data.val_fraction=0.34",
+                                   "trainer.max_steps=2", "logger=csv"], tmp_path / "run")
+    out = train(cfg)
+    assert out["trainer"].global_step == 2
+    dm = out["datamodule"]
+    assert len(dm.train_clips) == 2 and len(dm.val_clips) == 1
