@@ -83,4 +83,4 @@ def test_generate_config_composes(tmp_path: Path) -> None:
 
 def test_experiment_values_win_over_root_defaults(tmp_path: Path) -> None:
     cfg = compose_config("train", ["experiment=gaia1/tokenizer_tiny"], tmp_path)
-    assert cfg.run_name == "gaia1_tokenizer_tiny" and cfg.trainer.max_steps == 300
+    assert cfg.run_name == "gaia1_tokenizer_tiny" and cfg.trainer.max_steps == 1200

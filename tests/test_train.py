@@ -59,7 +59,7 @@ def test_generate_reconstructs_from_checkpoint(trained_run: Path, tmp_path: Path
     assert 0 < scores["psnr"] < 100 and -1 <= scores["ssim"] <= 1
     assert (tmp_path / f"{clip_id}_front.mp4").stat().st_size > 0
     tokens = __import__("numpy").load(tmp_path / f"{clip_id}_tokens.npy")
-    assert tokens.shape == (1, 3, 4, 7)
+    assert tokens.shape == (1, 3, 16, 28)  # D = 4 on 64×112 (tiny preset)
     assert (tmp_path / "reconstruction.rrd").stat().st_size > 0
 
 

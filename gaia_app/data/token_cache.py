@@ -2,11 +2,17 @@
 
 A cache is one `.npy` file or a folder of them, each a driving segment of shape (T, n) or
 (T, h, w) (commaVQ ships (1200, 8, 16) int16 per minute; its example file is (1200, 128) int64).
-An optional `<stem>.actions.npy` beside a segment holds (T, 2) speed and curvature.
+Optional sidecars beside a segment `<stem>.npy`, written by `generate.py mode=tokenize`:
+    <stem>.actions.npy      (T, 2) float32 speed (m/s) and curvature (1/m)
+    <stem>.timestamps.npy   (T,) float64 seconds of each step
+    <stem>.text.json        list of T captions (null where a frame has none)
+Every file is written atomically (`write_segment`); the token file is written last, so its presence
+marks a finished segment.
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,45 +21,92 @@ import torch
 from torch.utils.data import Dataset
 
 from gaia_app.data.clip import ClipError
+from gaia_app.utils.run_dir import atomic_save_npy, atomic_write_text
+
+SIDECARS = (".actions.npy", ".timestamps.npy", ".text.json")
 
 
 @dataclass
 class TokenSegment:
-    """tokens: (T, n) int64; actions: (T, 2) float32 or None; name: the file stem."""
+    """tokens: (T, n) int64 as loaded ((T, h, w) or (T, n) integer to write); name: the file stem;
+    actions: (T, 2) float32 or None; timestamps: (T,) float64 seconds or None; text: T captions (None entries allowed) or None."""
 
     name: str
     tokens: np.ndarray
     actions: np.ndarray | None
+    timestamps: np.ndarray | None = None
+    text: list[str | None] | None = None
+
+
+def sidecar(path: Path, suffix: str) -> Path:
+    """`<stem><suffix>` beside the token file `<stem>.npy`."""
+    return path.with_name(path.stem + suffix)
 
 
 def load_segment(path: Path, frame_stride: int = 1) -> TokenSegment:
-    """Read one token file (and its actions), keep every `frame_stride`-th step."""
+    """Read one token file (and its sidecars), keep every `frame_stride`-th step."""
     tokens = np.load(path)
     if tokens.ndim not in (2, 3) or tokens.dtype.kind not in "iu":
         raise ClipError(f"{path}: expected integer tokens (T, n) or (T, h, w), got {tokens.dtype} {tokens.shape}")
     tokens = tokens.reshape(len(tokens), -1).astype(np.int64)[::frame_stride]
-    actions_path = path.with_name(path.stem + ".actions.npy")
-    actions = None
-    if actions_path.exists():
-        actions = np.load(actions_path).astype(np.float32)[::frame_stride]
-        if actions.shape != (len(tokens), 2):
-            raise ClipError(f"{actions_path}: actions shape {actions.shape}, expected ({len(tokens)}, 2) after stride {frame_stride}")
-    return TokenSegment(path.stem, tokens, actions)
+    actions = _load_sidecar(sidecar(path, ".actions.npy"), np.float32, (len(tokens), 2), frame_stride)
+    timestamps = _load_sidecar(sidecar(path, ".timestamps.npy"), np.float64, (len(tokens),), frame_stride)
+    text_path = sidecar(path, ".text.json")
+    text = json.loads(text_path.read_text())[::frame_stride] if text_path.exists() else None
+    if text is not None and len(text) != len(tokens):
+        raise ClipError(f"{text_path}: {len(text)} captions, expected {len(tokens)} after stride {frame_stride}")
+    return TokenSegment(path.stem, tokens, actions, timestamps, text)
+
+
+def _load_sidecar(path: Path, dtype: type, shape: tuple[int, ...], frame_stride: int) -> np.ndarray | None:
+    """A per-step array beside a token file, strided like the tokens; None when absent."""
+    if not path.exists():
+        return None
+    array = np.load(path).astype(dtype)[::frame_stride]
+    if array.shape != shape:
+        raise ClipError(f"{path}: shape {array.shape}, expected {shape} after stride {frame_stride}")
+    return array
+
+
+def segment_done(root: str | Path, name: str) -> bool:
+    """True when the token file of segment `name` exists (it is written last, see `write_segment`)."""
+    return (Path(root) / f"{name}.npy").is_file()
+
+
+def write_segment(root: str | Path, segment: TokenSegment) -> Path:
+    """Write a segment and its sidecars, each atomically, the token file last; returns the token file.
+
+    segment.tokens: (T, h, w) or (T, n) integer; stored as int16 when the codebook fits (like commaVQ).
+    """
+    path = Path(root) / f"{segment.name}.npy"
+    t = len(segment.tokens)
+    if segment.actions is not None:
+        atomic_save_npy(sidecar(path, ".actions.npy"), np.asarray(segment.actions, np.float32).reshape(t, 2))
+    if segment.timestamps is not None:
+        atomic_save_npy(sidecar(path, ".timestamps.npy"), np.asarray(segment.timestamps, np.float64).reshape(t))
+    if segment.text is not None:
+        atomic_write_text(sidecar(path, ".text.json"), json.dumps(list(segment.text)))
+    tokens = np.asarray(segment.tokens)
+    dtype = np.int16 if tokens.size == 0 or tokens.max() < np.iinfo(np.int16).max else np.int32
+    atomic_save_npy(path, tokens.astype(dtype))
+    return path
 
 
 def find_segments(path: str | Path) -> list[Path]:
-    """The token files of a cache: the file itself, or every `*.npy` in a folder except actions."""
+    """The token files of a cache: the file itself, or every `*.npy` in a folder except sidecars."""
     root = Path(path)
     if root.is_file():
         return [root]
-    files = sorted(p for p in root.glob("*.npy") if not p.name.endswith(".actions.npy"))
+    files = sorted(p for p in root.glob("*.npy") if not p.name.endswith(SIDECARS))
     if not files:
         raise ClipError(f"token cache '{root}': no .npy token files found")
     return files
 
 
 class TokenWindows(Dataset):
-    """Windows of `seq_len` steps from token segments → {"tokens": (t, n) int64, "actions"?: (t, 2)}.
+    """Windows of `seq_len` steps from token segments →
+    {"tokens": (t, n) int64, "actions"?: (t, 2), "timestamps"?: (t,) float32 seconds from the window start}.
+    Captions stay on the segments (`segments[i].text`): strings do not batch.
 
     `spans` lists (segment index, first step, last step exclusive) regions to cut windows from,
     so that train and validation can use disjoint parts of one segment.
@@ -74,6 +127,9 @@ class TokenWindows(Dataset):
         item = {"tokens": torch.from_numpy(seg.tokens[start : start + self.seq_len])}
         if seg.actions is not None:
             item["actions"] = torch.from_numpy(seg.actions[start : start + self.seq_len])
+        if seg.timestamps is not None:
+            times = seg.timestamps[start : start + self.seq_len]
+            item["timestamps"] = torch.from_numpy(times - times[0]).float()
         return item
 
 

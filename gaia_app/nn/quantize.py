@@ -36,28 +36,38 @@ class FactorizedVectorQuantizer(nn.Module):
         codebook_size: K entries (paper 8192).
         code_dim: e, the low-dimensional look-up space (ViT-VQGAN uses 32).
         beta: commitment weight of VQ-VAE (0.25 as in ref. [28]).
+        factorized: False gives plain VQ-VAE (ref. [28]) for the ablation: no projection (e = d),
+            no L2 normalisation, nearest code in Euclidean distance.
     """
 
-    def __init__(self, dim: int, codebook_size: int, code_dim: int = 32, beta: float = 0.25):
+    def __init__(self, dim: int, codebook_size: int, code_dim: int = 32, beta: float = 0.25, factorized: bool = True):
         super().__init__()
-        self.codebook_size = codebook_size
-        self.beta = beta
-        self.project_in = nn.Conv2d(dim, code_dim, 1)
-        self.project_out = nn.Conv2d(code_dim, dim, 1)
+        self.codebook_size, self.beta, self.factorized = codebook_size, beta, factorized
+        code_dim = code_dim if factorized else dim
+        self.project_in = nn.Conv2d(dim, code_dim, 1) if factorized else nn.Identity()
+        self.project_out = nn.Conv2d(code_dim, dim, 1) if factorized else nn.Identity()
         self.codebook = nn.Embedding(codebook_size, code_dim)
         nn.init.normal_(self.codebook.weight)
 
     def normalized_codebook(self) -> torch.Tensor:
-        """(k, e) unit-norm code vectors."""
-        return F.normalize(self.codebook.weight, dim=-1)
+        """(k, e) code vectors: unit-norm when factorised, as stored for plain VQ."""
+        return F.normalize(self.codebook.weight, dim=-1) if self.factorized else self.codebook.weight
+
+    def to_code_space(self, features: torch.Tensor) -> torch.Tensor:
+        """(b, d, h, w) → (b, e, h, w) look-up vectors (projected and unit-norm when factorised)."""
+        z = self.project_in(features)
+        return F.normalize(z, dim=1) if self.factorized else z
 
     def forward(self, features: torch.Tensor) -> QuantizerOutput:
         """features: (b, d, h, w) → QuantizerOutput."""
-        z = F.normalize(self.project_in(features), dim=1)  # (b, e, h, w)
+        z = self.to_code_space(features)  # (b, e, h, w)
         flat = rearrange(z, "b e h w -> (b h w) e")
         codes = self.normalized_codebook()
-        # on the unit sphere, nearest in L2 == largest dot product
-        tokens = (flat @ codes.t()).argmax(dim=-1)
+        # argmin ‖z − c‖² = argmax (z·c − ‖c‖²/2); on the unit sphere the norm term is constant
+        scores = flat @ codes.t()
+        if not self.factorized:
+            scores = scores - 0.5 * codes.pow(2).sum(-1)
+        tokens = scores.argmax(dim=-1)
         q = codes[tokens]
         codebook_loss = F.mse_loss(q, flat.detach())
         commitment_loss = self.beta * F.mse_loss(flat, q.detach())
@@ -86,7 +96,7 @@ class FactorizedVectorQuantizer(nn.Module):
         dead = (usage == 0).nonzero(as_tuple=True)[0]
         if len(dead) == 0:
             return 0
-        z = rearrange(F.normalize(self.project_in(features), dim=1), "b e h w -> (b h w) e")
+        z = rearrange(self.to_code_space(features), "b e h w -> (b h w) e")
         pick = torch.randint(0, len(z), (len(dead),), device=z.device)
         self.codebook.weight[dead] = z[pick].to(self.codebook.weight.dtype)
         return int(len(dead))

@@ -1,4 +1,7 @@
-"""`generate(cfg)`: run a trained checkpoint on clips and write mp4s, tokens, metrics and a .rrd."""
+"""`generate(cfg)`: run a trained checkpoint on clips.
+
+mode=reconstruct writes mp4s, tokens, metrics and a .rrd; mode=tokenize writes a token cache for the world model.
+"""
 
 from __future__ import annotations
 
@@ -20,7 +23,9 @@ from gaia_app.data.transforms import to_float, to_uint8
 from gaia_app.data.video_io import write_video
 from gaia_app.lit.checkpoint import load_module
 from gaia_app.lit.gaia1_tokenizer import ImageTokenizerModule
-from gaia_app.pipelines.gaia1_tokenizer import ReconstructionOutput, TokenizerReconstructionPipeline
+from gaia_app.data.token_cache import segment_done, write_segment
+from gaia_app.pipelines.gaia1_tokenizer import (ReconstructionOutput, TokenCachePipeline, TokenizerReconstructionPipeline,
+                                                camera_names, segment_names)
 from gaia_app.utils.run_dir import atomic_write_text, save_resolved_config
 from gaia_app.viz.media import log_token_map, to_hwc_uint8
 
@@ -58,8 +63,7 @@ def reconstruct(cfg: DictConfig, module: ImageTokenizerModule, run_dir: Path) ->
         clip = fit_to_resolution(clips[i], datamodule.height, datamodule.width, datamodule.resize_mode)
         video = to_float(torch.from_numpy(clip.frames))
         out = pipeline(video)
-        names = [c.name for c in clip.cameras] if clip.cameras else clip.meta.get("camera_names", [f"view{v}" for v in range(clip.num_views)])
-        for v, camera in enumerate(names):
+        for v, camera in enumerate(camera_names(clip)):
             write_video(run_dir / f"{clip.clip_id}_{camera}.mp4", side_by_side(video[v], out.reconstruction[v]), clip.fps or 25.0)
             log_reconstruction(rec, clip.clip_id, camera, video, out, v, codebook)
         np.save(run_dir / f"{clip.clip_id}_tokens.npy", out.tokens.numpy())
@@ -69,7 +73,41 @@ def reconstruct(cfg: DictConfig, module: ImageTokenizerModule, run_dir: Path) ->
     return results
 
 
-MODES = {"reconstruct": (ImageTokenizerModule, reconstruct)}
+def tokenize_split(clips: Any, pipeline: TokenCachePipeline, out_dir: Path, max_clips: int | None, desc: str) -> dict[str, int]:
+    """Encode the clips of one split into `out_dir`; clips whose every segment is on disk are skipped."""
+    counts = {"written": 0, "skipped": 0}
+    n = len(clips) if max_clips is None else min(max_clips, len(clips))
+    for i in tqdm(range(n), desc=desc):
+        clip = clips[i]
+        # resumable: a finished segment's token file exists (written last and atomically)
+        if all(segment_done(out_dir, name) for name in segment_names(clip)):
+            counts["skipped"] += 1
+            continue
+        for segment in pipeline(clip).segments:
+            write_segment(out_dir, segment)
+        counts["written"] += 1
+    return counts
+
+
+def tokenize(cfg: DictConfig, module: ImageTokenizerModule, run_dir: Path) -> dict[str, Any]:
+    """Encode every clip of `cfg.splits` once into `cfg.out_dir/<split>/` (token_cache.py layout),
+    with timestamps, actions and captions beside the tokens (GAIA-1 §2.2: the world model trains on tokens)."""
+    datamodule = instantiate(cfg.data)
+    datamodule.setup("fit")
+    pipeline = TokenCachePipeline(module.tokenizer, datamodule.height, datamodule.width, datamodule.resize_mode,
+                                  cfg.fps, cfg.batch_size)
+    splits = {"train": datamodule.train_clips, "val": datamodule.val_clips}
+    results: dict[str, Any] = {}
+    for split in cfg.splits:
+        if split not in splits:
+            raise ValueError(f"splits: unknown split '{split}', expected some of {sorted(splits)}")
+        out_dir = Path(cfg.out_dir) / split
+        results[split] = {**tokenize_split(splits[split], pipeline, out_dir, cfg.max_clips, f"tokenize {split}"),
+                          "out_dir": str(out_dir)}
+    return results
+
+
+MODES = {"reconstruct": (ImageTokenizerModule, reconstruct), "tokenize": (ImageTokenizerModule, tokenize)}
 
 
 def generate(cfg: DictConfig) -> dict[str, Any]:
@@ -85,5 +123,5 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
         raise TypeError(f"mode={cfg.mode} needs a {module_type.__name__} checkpoint; {cfg.ckpt} holds {type(module).__name__}")
     results = run(cfg, module, run_dir)
     atomic_write_text(run_dir / "results.json", json.dumps(results, indent=2))
-    log.info("wrote mp4s, tokens, reconstruction.rrd and results.json to %s", run_dir)
+    log.info("mode=%s done; results.json in %s", cfg.mode, run_dir)
     return {"results": results, "run_dir": run_dir}

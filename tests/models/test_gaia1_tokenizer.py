@@ -48,6 +48,21 @@ def test_quantizer_picks_nearest_normalized_code() -> None:
     assert torch.equal(out.tokens.flatten(), dists.argmin(-1))
 
 
+def test_plain_vq_ablation_picks_nearest_raw_code() -> None:
+    """factorized=False: no projection, no normalisation, Euclidean nearest neighbour (plain VQ-VAE)."""
+    torch.manual_seed(0)
+    vq = FactorizedVectorQuantizer(dim=4, codebook_size=16, code_dim=2, factorized=False)
+    assert vq.codebook.weight.shape == (16, 4) and not any(p is vq.codebook.weight for p in vq.project_in.parameters())
+    feats = torch.randn(2, 4, 3, 3) * 3
+    out = vq(feats)
+    dists = torch.cdist(feats.permute(0, 2, 3, 1).reshape(-1, 4), vq.codebook.weight)
+    assert torch.equal(out.tokens.flatten(), dists.argmin(-1))
+    assert torch.allclose(vq.embed(out.tokens), out.quantized, atol=1e-5)
+    net = tiny(factorized=False)
+    x = torch.rand(1, 3, 16, 16) * 2 - 1
+    assert torch.allclose(net.decode(net.encode(x)), net(x).reconstruction, atol=1e-5)
+
+
 def test_embed_of_tokens_equals_quantized_features() -> None:
     net = tiny()
     x = torch.rand(1, 3, 16, 16) * 2 - 1

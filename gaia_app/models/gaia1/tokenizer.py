@@ -47,6 +47,8 @@ class ImageTokenizer(nn.Module):
         distill_dim: f, channels of the DINO teacher's features (384 for ViT-S/16, 768 for ViT-B/16);
             adds the trained 1×1 projection of the quantised features used by the distillation loss
             (GAIA-1 §2.2). 0: no projection.
+        factorized: True (paper): ViT-VQGAN's projected, L2-normalised look-up; False: plain VQ
+            (ablation, `model.net.factorized=false`).
     """
 
     block_types: tuple[type[nn.Module], ...] = (ResBlock,)
@@ -61,12 +63,13 @@ class ImageTokenizer(nn.Module):
         code_dim: int = 32,
         commitment_beta: float = 0.25,
         distill_dim: int = 0,
+        factorized: bool = True,
     ):
         super().__init__()
         self.downsampling = 2 ** (len(channel_mults) - 1)
         self.codebook_size = codebook_size
         self.encoder = ConvEncoder(3, latent_dim, channels, channel_mults, blocks_per_stage)
-        self.quantizer = FactorizedVectorQuantizer(latent_dim, codebook_size, code_dim, commitment_beta)
+        self.quantizer = FactorizedVectorQuantizer(latent_dim, codebook_size, code_dim, commitment_beta, factorized)
         self.decoder = ConvDecoder(latent_dim, 3, channels, channel_mults, blocks_per_stage)
         self.distill_dim = distill_dim
         self.distill_head = nn.Conv2d(latent_dim, distill_dim, 1) if distill_dim else None
