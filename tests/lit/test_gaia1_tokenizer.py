@@ -161,3 +161,24 @@ def test_tokenizer_learns_with_gan_perceptual_and_dino(frozen_checkpoints) -> No
     final = sum(l1[-5:]) / 5
     assert final < l1[0] / 3, (l1[0], final)
     assert record.terms[-1]["dino"] < record.terms[0]["dino"]
+
+
+def test_loss_weights_from_config_are_the_ones_applied(tmp_path) -> None:
+    """λ values given as Hydra overrides reach the loss terms unchanged (GAIA-1 §4.1 defaults otherwise)."""
+    from hydra.utils import instantiate
+
+    from tests.conftest import compose_config
+
+    cfg = compose_config("train", ["model=gaia1_tokenizer_tiny", "model.weights.l1=0.7", "model.weights.l2=3.0",
+                                   "model.weights.codebook=0.5"], tmp_path)
+    module = instantiate(cfg.model)
+    module.configure_model()
+    torch.manual_seed(0)
+    image = torch.rand(2, 3, 16, 16) * 2 - 1
+    out = module.tokenizer(image)
+    terms = module.generator_terms(image, out, with_gan=False)
+    assert torch.allclose(terms["l1"], 0.7 * torch.nn.functional.l1_loss(out.reconstruction, image))
+    assert torch.allclose(terms["l2"], 3.0 * torch.nn.functional.mse_loss(out.reconstruction, image))
+    assert torch.allclose(terms["codebook"], 0.5 * (out.codebook_loss + out.commitment_loss))
+    defaults = instantiate(compose_config("train", ["model=gaia1_tokenizer"], tmp_path).model).weights
+    assert (defaults.l1, defaults.l2, defaults.perceptual, defaults.gan, defaults.codebook, defaults.dino) == (0.2, 2.0, 0.1, 1.0, 1.0, 0.1)

@@ -162,3 +162,14 @@ def test_adaptive_weight_matches_hand_computation() -> None:
     # both graphs survive for the backward pass that follows
     (rec + weight * gan).backward()
     assert last.weight.grad is not None
+
+
+def test_codes_and_looked_up_vectors_are_unit_norm() -> None:
+    """ViT-VQGAN look-up (GAIA-1 §2.2): codes live on the unit sphere, whatever the raw embedding scale."""
+    vq = FactorizedVectorQuantizer(dim=8, codebook_size=32, code_dim=4)
+    with torch.no_grad():
+        vq.codebook.weight.mul_(7.0)
+    assert torch.allclose(vq.normalized_codebook().norm(dim=-1), torch.ones(32), atol=1e-6)
+    tokens = vq(torch.randn(2, 8, 3, 3)).tokens
+    looked_up = vq.normalized_codebook()[tokens]
+    assert torch.allclose(looked_up.norm(dim=-1), torch.ones_like(looked_up[..., 0]), atol=1e-6)
