@@ -15,8 +15,12 @@ from tests.conftest import CONF_DIR, compose_config
 GROUPS = ["data", "model", "model/net", "model/optim", "model/sched", "trainer", "debug", "logger", "callbacks",
           "paths", "extras", "hydra"]
 EXPERIMENTS = sorted(str(p.relative_to(CONF_DIR / "experiment").with_suffix("")) for p in (CONF_DIR / "experiment").rglob("*.yaml"))
-# what keeps instantiation cheap for any experiment: a tiny net and a CPU trainer
-SHRINK = ["model/net=gaia1_tokenizer_tiny", "trainer=tiny"]
+
+
+def shrink(experiment: str) -> list[str]:
+    """What keeps instantiation cheap for an experiment: its family's tiny net and a CPU trainer."""
+    net = "gaia1_world_model_tiny" if "world_model" in experiment else "gaia1_tokenizer_tiny"
+    return [f"model/net={net}", "trainer=tiny"]
 
 
 def options(group: str) -> list[str]:
@@ -64,7 +68,7 @@ def test_every_data_option_instantiates(option: str, tmp_path: Path, clip_root: 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_every_experiment_instantiates(experiment: str, tmp_path: Path, clip_root: Path) -> None:
-    cfg = compose_config("train", [f"experiment={experiment}", *SHRINK], tmp_path)
+    cfg = compose_config("train", [f"experiment={experiment}", *shrink(experiment)], tmp_path)
     if cfg.data.get("source", {}).get("_target_", "").endswith("ClipFolderDataset"):
         cfg.data.source.root = str(clip_root)
     resolve_job(cfg)

@@ -9,7 +9,7 @@ from omegaconf import OmegaConf
 
 from tests.conftest import CONF_DIR
 
-PAPER_SIZES = {"gaia1_tokenizer_paper": 0.3e9}  # GAIA-1 §4.1
+PAPER_SIZES = {"gaia1_tokenizer_paper": 0.3e9, "gaia1_world_model_paper": 6.5e9}  # GAIA-1 §4.1, §4.2
 
 
 @pytest.mark.parametrize("preset", sorted(PAPER_SIZES))
@@ -19,3 +19,11 @@ def test_paper_preset_parameter_count(preset: str) -> None:
         net = instantiate(cfg)()
     count = sum(p.numel() for p in net.parameters())
     assert count == pytest.approx(PAPER_SIZES[preset], rel=0.10), f"{preset}: {count / 1e6:.1f}M parameters"
+
+
+def test_world_model_paper_sequence_length() -> None:
+    """GAIA-1 §4.2: T × (m + n + l) = 26 × (32 + 576 + 2) = 15 860 positions."""
+    cfg = OmegaConf.load(CONF_DIR / "model" / "net" / "gaia1_world_model_paper.yaml")
+    with torch.device("meta"):
+        net = instantiate(cfg)()
+    assert net.frames * net.step_len == 15_860

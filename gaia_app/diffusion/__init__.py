@@ -1,0 +1,1 @@
+"""Samplers and guidance (pure torch): stateless objects shared by validation and pipelines."""

@@ -1,0 +1,129 @@
+"""Autoregressive image-token sampling for the GAIA-1 world model (GAIA-1 §5.1).
+
+Legend:
+    b batch, t0 context frames, f generated frames, T context length of the net (steps), n image
+    tokens per frame, m text tokens per step, s tokens per step, d model width, V vocabulary.
+
+One frame takes n forward passes, one per token. With the KV cache each pass feeds only the new
+positions; without it (`use_cache=False`, the reference for tests and benchmarks) each pass
+re-runs the whole window. Beyond T steps a sliding window keeps the last T - 1 frames as context.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from gaia_app.diffusion.guidance import ClassifierFreeGuidance
+from gaia_app.models.gaia1.world_model import Conditions, WorldModel
+from gaia_app.nn.attention import KVCache
+
+MODES = ("argmax", "sample", "top_k")
+
+
+@dataclass(frozen=True)
+class TokenPicker:
+    """Chooses next tokens from logits: `argmax`, `sample` (full distribution) or `top_k` (GAIA-1 §5.1, Fig. 6).
+
+    temperature divides the logits before sampling; k is the top-k cut-off.
+    """
+
+    mode: str = "top_k"
+    k: int = 50
+    temperature: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES or self.k < 1 or self.temperature <= 0:
+            raise ValueError(f"TokenPicker: mode in {MODES}, k ≥ 1, temperature > 0; got {self}")
+
+    def __call__(self, logits: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """(b, V) logits → (b,) int64 tokens."""
+        if self.mode == "argmax":
+            return logits.argmax(-1)
+        logits = logits.float() / self.temperature
+        if self.mode == "top_k":
+            top, index = logits.topk(min(self.k, logits.shape[-1]), dim=-1)
+            choice = torch.multinomial(top.softmax(-1), 1, generator=generator)
+            return index.gather(-1, choice).squeeze(-1)
+        return torch.multinomial(logits.softmax(-1), 1, generator=generator).squeeze(-1)
+
+
+class WindowStream:
+    """Positions fed so far in one context window: a KV cache, or the embedded chunks re-run in full."""
+
+    def __init__(self, net: WorldModel, use_cache: bool):
+        self.net = net
+        self.cache = KVCache() if use_cache else None
+        self.chunks: list[torch.Tensor] = []
+
+    def feed(self, x: torch.Tensor) -> torch.Tensor:
+        """Append embedded positions x: (b, L, d); return the logits after the last one (b, V)."""
+        if self.cache is not None:
+            h = self.net.decode(x, self.cache)[:, -1]
+        else:
+            self.chunks.append(x)
+            h = self.net.decode(torch.cat(self.chunks, dim=1))[:, -1]
+        return self.net.head(h)
+
+
+class AutoregressiveSampler:
+    """Generates image tokens frame by frame, token by token, with optional classifier-free guidance.
+
+    Args:
+        picker: how each token is chosen from the (guided) logits.
+        use_cache: KV-cached incremental decoding (True) or full recompute at every token.
+    """
+
+    def __init__(self, picker: TokenPicker | None = None, use_cache: bool = True):
+        self.picker = picker or TokenPicker()
+        self.use_cache = use_cache
+
+    @torch.no_grad()
+    def __call__(self, net: WorldModel, context: torch.Tensor, cond: Conditions, uncond: Conditions | None = None,
+                 frames: int = 1, guidance: ClassifierFreeGuidance | None = None,
+                 generator: torch.Generator | None = None) -> torch.Tensor:
+        """Context (b, t0, n) int64 and conditions for t0 + f steps → tokens (b, t0 + f, n).
+
+        With `guidance`, `uncond` (the unconditioned or negative-prompt stream) runs in the same
+        forward as `cond`, stacked on the batch; eq. 3 combines their logits per token.
+        """
+        if (guidance is None) != (uncond is None):
+            raise ValueError("classifier-free guidance needs both `guidance` and `uncond` (or neither)")
+        b, t0, n = context.shape
+        if cond.text.shape[1] < t0 + frames:
+            raise ValueError(f"conditions cover {cond.text.shape[1]} steps, need t0 + frames = {t0 + frames}")
+        tokens = torch.cat([context, context.new_zeros(b, frames, n)], dim=1)
+        streams = cond if uncond is None else cond.cat(uncond)
+        scales = guidance.scales(frames, n) if guidance is not None else None
+        stream, window = None, -1
+        for k in range(frames):
+            t = t0 + k
+            start = max(0, t - (net.frames - 1))  # sliding window beyond T steps
+            if start != window:
+                stream, window = WindowStream(net, self.use_cache), start
+                x = self.prefill(net, tokens, streams, start, t)
+            else:  # the previous frame's last image token and its actions, then this step's text
+                x = torch.cat([self.step(net, tokens, streams, t - 1, start)[:, net.m + n - 1 :],
+                               self.step(net, tokens, streams, t, start)[:, : net.m]], dim=1)
+            for i in range(n):
+                logits = stream.feed(x)
+                if guidance is not None:
+                    cond_logits, uncond_logits = logits.chunk(2)
+                    logits = guidance(cond_logits, uncond_logits, scales[k, i].item())
+                tokens[:, t, i] = self.picker(logits, generator)
+                x = self.step(net, tokens, streams, t, start)[:, net.m + i : net.m + i + 1]
+        return tokens
+
+    @staticmethod
+    def step(net: WorldModel, tokens: torch.Tensor, streams: Conditions, t: int, start: int) -> torch.Tensor:
+        """Embedded positions (B, s, d) of step t in the window beginning at step `start`."""
+        both = tokens[:, t : t + 1].repeat(streams.text.shape[0] // tokens.shape[0], 1, 1)  # one copy per stream
+        return net.embed(both, streams.steps(t, t + 1), t - start)
+
+    @staticmethod
+    def prefill(net: WorldModel, tokens: torch.Tensor, streams: Conditions, start: int, t: int) -> torch.Tensor:
+        """The window's known steps start..t-1 in full, then step t's text: (B, (t - start)·s + m, d)."""
+        both = tokens[:, start:t].repeat(streams.text.shape[0] // tokens.shape[0], 1, 1)
+        known = net.embed(both, streams.steps(start, t), 0)
+        return torch.cat([known, AutoregressiveSampler.step(net, tokens, streams, t, start)[:, : net.m]], dim=1)

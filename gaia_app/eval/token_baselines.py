@@ -1,0 +1,34 @@
+"""Reference cross-entropies (nats/token) for image-token world models (GAIA-1 §2.3 objective).
+
+Legend:
+    t time steps, n image tokens per step, V vocabulary.
+
+A world model worth its compute must beat both: the unigram distribution of the training tokens,
+and "copy the token at the same position in the previous frame", smoothed with the ε that is best
+on the evaluated tokens themselves (an optimistic baseline, so beating it is a conservative test).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+def unigram_cross_entropy(train: torch.Tensor, target: torch.Tensor, vocab: int) -> float:
+    """Cross-entropy of `target` tokens under add-one-smoothed unigram counts of `train` (any int shapes)."""
+    counts = torch.bincount(train.flatten(), minlength=vocab).double() + 1.0
+    log_p = (counts / counts.sum()).log()
+    return float(-log_p[target.flatten()].mean())
+
+
+def copy_previous_cross_entropy(tokens: torch.Tensor, vocab: int) -> tuple[float, float]:
+    """(cross-entropy, ε) of predicting z_{t,i} = z_{t-1,i} with probability 1 − ε, ε/(V − 1) elsewhere.
+
+    tokens: (..., t, n); frames 2..t are scored. The best ε is the mismatch rate (the closed-form MLE),
+    clamped away from 0 and 1.
+    """
+    same = (tokens[..., 1:, :] == tokens[..., :-1, :]).double().mean().item()
+    eps = min(max(1.0 - same, 1e-6), 1 - 1e-6)
+    ce = -(same * math.log(1.0 - eps) + (1.0 - same) * math.log(eps / (vocab - 1)))
+    return ce, eps

@@ -1,0 +1,170 @@
+"""GAIA-1 world model: a causal transformer over interleaved text · image · action tokens (GAIA-1 §2.1, §2.3).
+
+Legend:
+    b batch, t time steps (≤ T, the context length), m text tokens per step, n image tokens per step,
+    l = 2 action tokens per step (speed, curvature), s = m + n + l tokens per step, d model width,
+    e text-encoder width, V image vocabulary (tokenizer codebook size).
+
+Per step the sequence holds (c_t, z_t, a_t); the whole input is (c_1, z_1, a_1, …, c_T, z_T, a_T).
+Image token z_{t,i} is predicted from the hidden state one position earlier, so it sees
+z_{<t}, z_{t,<i}, c_{≤t} and a_{<t} (eq. 1): the action of step t comes after z_t.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import torch
+from einops import rearrange, repeat
+from torch import nn
+
+from gaia_app.nn.attention import KVCache
+from gaia_app.nn.transformer import CausalTransformer, TransformerBlock
+
+STREAMS = ("text", "actions")
+# conditioning modes drawn per training example (GAIA-1 §4.2: 20% / 40% / 40%, no both-conditions share)
+DEFAULT_DROP = {"unconditional": 0.2, "actions": 0.4, "text": 0.4, "both": 0.0}
+
+
+@dataclass
+class Conditions:
+    """Condition tokens in model space: text (b, t, m, d), actions (b, t, l, d)."""
+
+    text: torch.Tensor
+    actions: torch.Tensor
+
+    def steps(self, start: int, stop: int) -> Conditions:
+        return Conditions(self.text[:, start:stop], self.actions[:, start:stop])
+
+    def cat(self, other: Conditions) -> Conditions:
+        """Stack two conditions along the batch (the guided and unguided streams in one forward)."""
+        return Conditions(torch.cat([self.text, other.text]), torch.cat([self.actions, other.actions]))
+
+
+class WorldModelConditioner(nn.Module):
+    """Projects text embeddings and actions to d; drops them to learned null embeddings (GAIA-1 §2.1, §2.3).
+
+    Args:
+        dim: d. text_dim: e, width of the text encoder's output. text_tokens: m. action_tokens: l.
+        drop: probabilities of the training modes {unconditional, actions, text, both} (normalised);
+            a dropped stream is replaced by its null embedding, so the sequence layout never changes.
+    """
+
+    def __init__(self, dim: int, text_dim: int, text_tokens: int, action_tokens: int = 2,
+                 drop: Mapping[str, float] | None = None):
+        super().__init__()
+        self.text_tokens, self.action_tokens = text_tokens, action_tokens
+        self.text_proj = nn.Linear(text_dim, dim)
+        # l independent scalar → d linear layers, one per action channel (speed, curvature)
+        self.action_weight = nn.Parameter(torch.randn(action_tokens, dim) * 0.02)
+        self.action_bias = nn.Parameter(torch.zeros(action_tokens, dim))
+        self.null_text = nn.Parameter(torch.randn(text_tokens, dim) * 0.02)
+        self.null_actions = nn.Parameter(torch.randn(action_tokens, dim) * 0.02)
+        rates = {**DEFAULT_DROP, **dict(drop or {})}
+        if set(rates) != set(DEFAULT_DROP) or min(rates.values()) < 0 or sum(rates.values()) <= 0:
+            raise ValueError(f"drop needs non-negative rates for {sorted(DEFAULT_DROP)}, got {dict(drop or {})}")
+        probs = torch.tensor([rates[k] for k in DEFAULT_DROP])
+        self.register_buffer("mode_probs", probs / probs.sum(), persistent=False)
+
+    def forward(self, batch: int, steps: int, text: torch.Tensor | None = None, actions: torch.Tensor | None = None,
+                force_drop: Mapping[str, bool | torch.Tensor] | None = None) -> Conditions:
+        """Condition tokens for `steps` steps; absent or dropped streams become null embeddings.
+
+        text: (b, t, m, e) or None; actions: (b, t, l) or None.
+        force_drop: per stream, True/False or a (b,) bool tensor that replaces the random drop
+            (inference: e.g. {"text": True, "actions": False} is the unconditioned CFG stream).
+        """
+        keep = self.keep_masks(batch, force_drop)
+        null_text = repeat(self.null_text, "m d -> b t m d", b=batch, t=steps)
+        null_actions = repeat(self.null_actions, "l d -> b t l d", b=batch, t=steps)
+        text_tokens = null_text if text is None else self.text_proj(text)
+        action_tokens = null_actions if actions is None else actions[..., None] * self.action_weight + self.action_bias
+        return Conditions(
+            text=torch.where(keep["text"][:, None, None, None], text_tokens, null_text),
+            actions=torch.where(keep["actions"][:, None, None, None], action_tokens, null_actions),
+        )
+
+    def keep_masks(self, batch: int, force_drop: Mapping[str, bool | torch.Tensor] | None) -> dict[str, torch.Tensor]:
+        """(b,) bool per stream: True keeps it. Random modes in training, keep-all in eval, then `force_drop`."""
+        device = self.null_text.device
+        if self.training:
+            mode = torch.multinomial(self.mode_probs, batch, replacement=True)  # index into DEFAULT_DROP
+            keep = {"actions": (mode == 1) | (mode == 3), "text": (mode == 2) | (mode == 3)}
+        else:
+            keep = {name: torch.ones(batch, dtype=torch.bool, device=device) for name in STREAMS}
+        for name, drop in (force_drop or {}).items():
+            if name not in STREAMS:
+                raise ValueError(f"force_drop: unknown stream {name!r}, expected one of {STREAMS}")
+            keep[name] = ~torch.as_tensor(drop, dtype=torch.bool, device=device).expand(batch)
+        return keep
+
+
+class WorldModel(nn.Module):
+    """Decoder-only transformer predicting image tokens from interleaved text·image·action (GAIA-1 §2.3).
+
+    Args:
+        vocab_size: V, image-token vocabulary. dim, depth, heads, kv_heads, mlp_ratio: transformer
+            (kv_heads < heads: grouped-query attention). frames: T, context length in steps.
+        text_tokens: m (≥ 1: the last text token of a step predicts that step's first image token).
+        image_tokens: n. action_tokens: l. text_dim: e.
+        cond_drop: conditioning-mode rates (see WorldModelConditioner). checkpointing: activation checkpointing.
+    """
+
+    block_types = (TransformerBlock,)
+
+    def __init__(self, vocab_size: int, dim: int, depth: int, heads: int, kv_heads: int | None = None,
+                 frames: int = 26, text_tokens: int = 32, image_tokens: int = 576, action_tokens: int = 2,
+                 text_dim: int = 384, mlp_ratio: float = 4.0, dropout: float = 0.0,
+                 cond_drop: Mapping[str, float] | None = None, checkpointing: bool = False):
+        super().__init__()
+        if text_tokens < 1:
+            raise ValueError("text_tokens must be ≥ 1: the last text token of step t predicts z_{t,1}")
+        self.vocab_size, self.frames = vocab_size, frames
+        self.m, self.n, self.l = text_tokens, image_tokens, action_tokens
+        self.step_len = text_tokens + image_tokens + action_tokens
+        self.conditioner = WorldModelConditioner(dim, text_dim, text_tokens, action_tokens, cond_drop)
+        self.token_embedding = nn.Embedding(vocab_size, dim)
+        self.temporal = nn.Parameter(torch.zeros(frames, dim))  # shared by all tokens of a step
+        self.spatial = nn.Parameter(torch.zeros(self.step_len, dim))  # position within a step
+        self.transformer = CausalTransformer(dim, depth, heads, kv_heads, mlp_ratio, dropout, checkpointing)
+        self.head = nn.Linear(dim, vocab_size, bias=False)
+        self.initialize_weights()
+
+    def initialize_weights(self) -> None:
+        """GPT-2 init for the transformer and head, N(0, 0.02) for embeddings and positions."""
+        self.transformer.initialize_weights()
+        for p in (self.token_embedding.weight, self.temporal, self.spatial, self.head.weight):
+            nn.init.normal_(p, std=0.02)
+
+    def embed(self, tokens: torch.Tensor, cond: Conditions, start: int = 0) -> torch.Tensor:
+        """Interleaved, position-embedded inputs of whole steps (GAIA-1 §2.1).
+
+        tokens: (b, t, n) int64; cond: t steps; start: window index of the first step → (b, t·s, d).
+        """
+        t = tokens.shape[1]
+        if start + t > self.frames:
+            raise ValueError(f"steps {start}..{start + t - 1} exceed the context of T={self.frames} steps")
+        x = torch.cat([cond.text, self.token_embedding(tokens), cond.actions], dim=2)  # (b, t, s, d)
+        x = x + self.temporal[start : start + t, None] + self.spatial
+        return rearrange(x, "b t s d -> b (t s) d")
+
+    def decode(self, x: torch.Tensor, cache: KVCache | None = None) -> torch.Tensor:
+        """Hidden states (b, L, d) of embedded positions x: (b, L, d), after the cache's positions if given."""
+        return self.transformer(x, cache)
+
+    def forward(self, tokens: torch.Tensor, cond: Conditions) -> torch.Tensor:
+        """Next-image-token logits, aligned with their targets: tokens (b, t, n) → (b, t, n, V).
+
+        logits[:, t, i] is read at the position just before z_{t,i} (eq. 1); text and action
+        positions produce no output, so they can never be targets.
+        """
+        h = self.decode(self.embed(tokens, cond))
+        h = rearrange(h, "b (t s) d -> b t s d", s=self.step_len)[:, :, self.m - 1 : self.m + self.n - 1]
+        return self.head(h)
+
+
+def next_token_loss(net: WorldModel, tokens: torch.Tensor, cond: Conditions) -> torch.Tensor:
+    """Mean cross-entropy (nats/token) of eq. 1 over image tokens only. tokens: (b, t, n) int64 (GAIA-1 §2.3)."""
+    logits = net(tokens, cond)
+    return nn.functional.cross_entropy(rearrange(logits, "b t n v -> (b t n) v"), tokens.flatten())

@@ -1,0 +1,90 @@
+"""Causal self-attention on `scaled_dot_product_attention`, with grouped-query heads and a KV cache.
+
+Legend:
+    b batch, s query length, p cached (past) length, d model width, h query heads, g key/value heads
+    (h % g == 0; g < h is grouped-query attention), e head width (d / h).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from einops import rearrange
+from torch import nn
+
+
+class KVCache:
+    """Keys and values of the positions already decoded, one (k, v) pair per layer.
+
+    Each layer appends its new keys/values (b, g, s, e) during a forward; `length` is the number of
+    cached positions, i.e. the absolute position of the next token. Data only: decoding state lives
+    in this object, never in the network or the sampler.
+    """
+
+    def __init__(self) -> None:
+        self.keys: list[torch.Tensor] = []
+        self.values: list[torch.Tensor] = []
+
+    @property
+    def length(self) -> int:
+        """Positions cached in the last layer (every layer, between forwards)."""
+        return self.keys[-1].shape[2] if self.keys else 0
+
+    def past(self, layer: int) -> int:
+        """Positions cached in `layer` before this forward appends to it."""
+        return self.keys[layer].shape[2] if layer < len(self.keys) else 0
+
+    def update(self, layer: int, k: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Append (b, g, s, e) keys/values of `layer`; return all of them (b, g, p + s, e)."""
+        if layer == len(self.keys):
+            self.keys.append(k)
+            self.values.append(v)
+        else:
+            self.keys[layer] = torch.cat([self.keys[layer], k], dim=2)
+            self.values[layer] = torch.cat([self.values[layer], v], dim=2)
+        return self.keys[layer], self.values[layer]
+
+
+def causal_mask(queries: int, past: int, device: torch.device) -> torch.Tensor:
+    """(s, p + s) bool, True where query i (at absolute position p + i) may attend to key j."""
+    q = torch.arange(queries, device=device)[:, None] + past
+    k = torch.arange(past + queries, device=device)[None, :]
+    return k <= q
+
+
+class CausalSelfAttention(nn.Module):
+    """Multi-head causal self-attention; `kv_heads < heads` shares each K/V head among a query group.
+
+    Fewer K/V heads shrink the KV cache and its memory traffic, which dominate incremental decoding.
+    """
+
+    def __init__(self, dim: int, heads: int, kv_heads: int | None = None, dropout: float = 0.0):
+        super().__init__()
+        kv_heads = kv_heads or heads
+        if dim % heads or heads % kv_heads:
+            raise ValueError(f"dim={dim} must divide by heads={heads}, and heads by kv_heads={kv_heads}")
+        self.heads, self.kv_heads, self.head_dim = heads, kv_heads, dim // heads
+        self.to_q = nn.Linear(dim, dim, bias=False)
+        self.to_kv = nn.Linear(dim, 2 * kv_heads * self.head_dim, bias=False)
+        self.to_out = nn.Linear(dim, dim, bias=False)
+        self.dropout = dropout
+
+    def forward(self, x: torch.Tensor, cache: KVCache | None = None, layer: int = 0) -> torch.Tensor:
+        """x: (b, s, d) → (b, s, d); with a cache, x holds the positions after the cached ones."""
+        q = rearrange(self.to_q(x), "b s (h e) -> b h s e", h=self.heads)
+        k, v = rearrange(self.to_kv(x), "b s (two g e) -> two b g s e", two=2, g=self.kv_heads)
+        past = cache.past(layer) if cache is not None else 0
+        if cache is not None:
+            k, v = cache.update(layer, k, v)
+        if self.kv_heads != self.heads:  # grouped-query: each K/V head serves heads / kv_heads query heads
+            k = k.repeat_interleave(self.heads // self.kv_heads, dim=1)
+            v = v.repeat_interleave(self.heads // self.kv_heads, dim=1)
+        dropout = self.dropout if self.training else 0.0
+        if past == 0:  # plain causal mask: lets SDPA pick its flash/efficient kernel
+            out = F.scaled_dot_product_attention(q, k, v, dropout_p=dropout, is_causal=True)
+        elif x.shape[1] == 1:  # one new token sees every cached position
+            out = F.scaled_dot_product_attention(q, k, v, dropout_p=dropout)
+        else:
+            mask = causal_mask(x.shape[1], past, x.device)
+            out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=dropout)
+        return self.to_out(rearrange(out, "b h s e -> b s (h e)"))

@@ -1,0 +1,81 @@
+"""Pre-norm decoder-only transformer (GPT-2 style) shared by the GAIA world models.
+
+Legend:
+    b batch, s sequence length, d model width.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+from torch.utils.checkpoint import checkpoint
+
+from gaia_app.nn.attention import CausalSelfAttention, KVCache
+
+
+class FeedForward(nn.Module):
+    """Two-layer GELU MLP, hidden width `mult`·d."""
+
+    def __init__(self, dim: int, mult: float = 4.0, dropout: float = 0.0):
+        super().__init__()
+        hidden = int(dim * mult)
+        self.net = nn.Sequential(nn.Linear(dim, hidden), nn.GELU(), nn.Linear(hidden, dim), nn.Dropout(dropout))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
+class TransformerBlock(nn.Module):
+    """x + attn(norm(x)), then x + mlp(norm(x)). x: (b, s, d)."""
+
+    def __init__(self, dim: int, heads: int, kv_heads: int | None = None, mlp_ratio: float = 4.0, dropout: float = 0.0):
+        super().__init__()
+        self.norm1 = nn.LayerNorm(dim)
+        self.attn = CausalSelfAttention(dim, heads, kv_heads, dropout)
+        self.norm2 = nn.LayerNorm(dim)
+        self.mlp = FeedForward(dim, mlp_ratio, dropout)
+
+    def forward(self, x: torch.Tensor, cache: KVCache | None = None, layer: int = 0) -> torch.Tensor:
+        x = x + self.attn(self.norm1(x), cache, layer)
+        return x + self.mlp(self.norm2(x))
+
+
+class CausalTransformer(nn.Module):
+    """Stack of causal pre-norm blocks and a final LayerNorm.
+
+    Args:
+        dim, depth, heads: width, number of blocks, query heads.
+        kv_heads: key/value heads (None: = heads; fewer: grouped-query attention).
+        mlp_ratio: MLP hidden width over d.
+        checkpointing: recompute each block's activations in backward (training without a cache only).
+    """
+
+    def __init__(self, dim: int, depth: int, heads: int, kv_heads: int | None = None, mlp_ratio: float = 4.0,
+                 dropout: float = 0.0, checkpointing: bool = False):
+        super().__init__()
+        self.blocks = nn.ModuleList(TransformerBlock(dim, heads, kv_heads, mlp_ratio, dropout) for _ in range(depth))
+        self.norm = nn.LayerNorm(dim)
+        self.checkpointing = checkpointing
+
+    def forward(self, x: torch.Tensor, cache: KVCache | None = None) -> torch.Tensor:
+        """x: (b, s, d) → (b, s, d). With a cache, x holds the positions after the cached ones."""
+        for i, block in enumerate(self.blocks):
+            if self.checkpointing and self.training and cache is None:
+                x = checkpoint(block, x, use_reentrant=False)
+            else:
+                x = block(x, cache, i)
+        return self.norm(x)
+
+    def initialize_weights(self) -> None:
+        """GPT-2 init: N(0, 0.02) weights, zero biases, residual projections scaled by 1/√(2·depth) (nanoGPT)."""
+        for module in self.modules():
+            if isinstance(module, nn.Linear):
+                nn.init.normal_(module.weight, std=0.02)
+                if module.bias is not None:
+                    nn.init.zeros_(module.bias)
+        residual_std = 0.02 / math.sqrt(2 * len(self.blocks))
+        for block in self.blocks:
+            nn.init.normal_(block.attn.to_out.weight, std=residual_std)
+            nn.init.normal_(block.mlp.net[2].weight, std=residual_std)

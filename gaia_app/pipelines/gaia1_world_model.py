@@ -1,0 +1,65 @@
+"""GAIA-1 world-model rollouts: futures of image tokens from context frames, text and actions (GAIA-1 §5.1)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+
+from gaia_app.diffusion.ar_sampling import AutoregressiveSampler
+from gaia_app.diffusion.guidance import ClassifierFreeGuidance
+from gaia_app.models.gaia1.world_model import STREAMS, Conditions, WorldModel
+
+
+@dataclass
+class RolloutOutput:
+    """tokens: (b·futures, t0 + f, n) int64, futures of one example adjacent; context_frames: t0."""
+
+    tokens: torch.Tensor
+    context_frames: int
+
+
+def repeat_futures(x: torch.Tensor | None, futures: int) -> torch.Tensor | None:
+    """(b, ...) → (b·futures, ...), each example's copies adjacent."""
+    return None if x is None else x.repeat_interleave(futures, dim=0)
+
+
+class WorldModelRolloutPipeline:
+    """Rolls out futures with the KV-cached sampler, optionally guided (eq. 3) or negatively prompted.
+
+    Args:
+        net: the world model. sampler: AutoregressiveSampler. guidance: ClassifierFreeGuidance or None.
+        guided_streams: streams the unconditioned stream drops (paper: no conditioning at all).
+    """
+
+    def __init__(self, net: WorldModel, sampler: AutoregressiveSampler, guidance: ClassifierFreeGuidance | None = None,
+                 guided_streams: Sequence[str] = STREAMS):
+        self.net, self.sampler, self.guidance = net, sampler, guidance
+        self.guided_streams = tuple(guided_streams)
+
+    def conditions(self, batch: int, steps: int, text: torch.Tensor | None, actions: torch.Tensor | None,
+                   drop: Sequence[str] = ()) -> Conditions:
+        """Every given stream kept (whatever the net's train/eval mode), except those in `drop`."""
+        force = {"text": text is None or "text" in drop, "actions": actions is None or "actions" in drop}
+        return self.net.conditioner(batch, steps, text, actions, force)
+
+    @torch.no_grad()
+    def __call__(self, context: torch.Tensor, frames: int, text: torch.Tensor | None = None,
+                 actions: torch.Tensor | None = None, negative_text: torch.Tensor | None = None,
+                 num_futures: int = 1, generator: torch.Generator | None = None) -> RolloutOutput:
+        """context (b, t0, n) int64; text, negative_text: (b, t0 + f, m, e) encoder outputs; actions: (b, t0 + f, 2).
+
+        Several futures per example are sampled in one batch (`num_futures`).
+        """
+        steps = context.shape[1] + frames
+        context, text, actions, negative_text = (repeat_futures(x, num_futures) for x in (context, text, actions, negative_text))
+        batch = context.shape[0]
+        cond = self.conditions(batch, steps, text, actions)
+        uncond = None
+        if self.guidance is not None and negative_text is not None:  # negative prompting (GAIA-1 §5.1)
+            uncond = self.conditions(batch, steps, negative_text, actions)
+        elif self.guidance is not None:
+            uncond = self.conditions(batch, steps, text, actions, drop=self.guided_streams)
+        tokens = self.sampler(self.net, context, cond, uncond, frames, self.guidance, generator)
+        return RolloutOutput(tokens, context.shape[1])
