@@ -4,24 +4,51 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Write `text` to `path` through a temp file in the same folder, so readers never see half a file."""
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temp path beside `path` to write to; on success it replaces `path`, on error it is removed.
+
+    Readers never see half a file, and an interrupted write leaves the old file (or none). The temp
+    name starts with '.' and ends in '.tmp', so globs for the final suffix skip it. The file gets the
+    usual permissions (0666 minus the umask), not mkstemp's private 0600.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        yield Path(tmp)
+        os.chmod(tmp, 0o666 & ~current_umask())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """Write `text` to `path` atomically (see `atomic_path`)."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write `data` to `path` atomically (see `atomic_path`)."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
 
 
 def save_resolved_config(cfg: DictConfig, run_dir: str | Path, name: str = "config_resolved.yaml") -> Path:
@@ -33,15 +60,6 @@ def save_resolved_config(cfg: DictConfig, run_dir: str | Path, name: str = "conf
 
 
 def atomic_save_npy(path: str | Path, array: np.ndarray) -> None:
-    """`np.save` through a temp file in the same folder and `os.replace`: an interrupted write leaves
-    the old file (or none), never a truncated one. The temp name does not end in `.npy`, so globs skip it."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.save(f, array)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """`np.save` to `path` atomically (see `atomic_path`); the temp name does not end in `.npy`."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.save(f, array)
