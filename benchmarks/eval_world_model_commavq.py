@@ -1,7 +1,7 @@
 """Validation cross-entropy of a trained GAIA-1 world model on commaVQ tokens vs two baselines (issue 5).
 
     python train.py experiment=gaia1/world_model_commavq
-    python benchmarks/eval_world_model_commavq.py --ckpt outputs/gaia1_world_model_commavq/<time>/checkpoints/last.ckpt
+    python benchmarks/eval_world_model_commavq.py --ckpt outputs/gaia1_world_model_commavq/<time>/checkpoints/best_step_*.ckpt
 
 Uses the DataModule of the run's own config (same windows, same time split). Reports, in nats/token
 on validation frames 2..T of each window (frame 1 has no previous frame to copy):
@@ -22,25 +22,13 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 import gaia_app.utils.resolvers  # noqa: F401
-from gaia_app.eval.token_baselines import copy_previous_cross_entropy, unigram_cross_entropy
+from gaia_app.eval.token_baselines import copy_previous_cross_entropy, model_cross_entropy, unigram_cross_entropy
 from gaia_app.lit.checkpoint import load_module
 
 
 def stack(dataset) -> torch.Tensor:
     """All windows of a TokenWindows dataset: (windows, t, n)."""
     return torch.stack([dataset[i]["tokens"] for i in range(len(dataset))])
-
-
-@torch.no_grad()
-def model_cross_entropy(module, val: torch.Tensor, batch: int) -> float:
-    """Mean eq. 1 cross-entropy over image tokens of frames 2..T. val: (windows, t, n)."""
-    net = module.world_model.eval()
-    total, count = 0.0, 0
-    for chunk in val.split(batch):
-        logits = net(chunk, module.conditions({"tokens": chunk}))[:, 1:]
-        nll = torch.nn.functional.cross_entropy(logits.flatten(0, 2), chunk[:, 1:].flatten(), reduction="sum")
-        total, count = total + nll.item(), count + chunk[:, 1:].numel()
-    return total / count
 
 
 def main() -> None:
@@ -50,6 +38,7 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=8)
     args = parser.parse_args()
     module = load_module(args.ckpt).eval()
+    net = module.world_model.eval()
     run_cfg = OmegaConf.load(args.data or str(Path(args.ckpt).parents[1] / "config_resolved.yaml"))
     datamodule = instantiate(run_cfg.data if "data" in run_cfg else run_cfg)
     datamodule.setup("fit")
@@ -57,7 +46,7 @@ def main() -> None:
     train, val = stack(datamodule.train_set), stack(datamodule.val_set)
     copy_ce, eps = copy_previous_cross_entropy(val, vocab)
     results = {
-        "model": model_cross_entropy(module, val, args.batch),
+        "model": model_cross_entropy(lambda x: net(x, module.conditions({"tokens": x})), val, args.batch),
         "unigram": unigram_cross_entropy(train, val[:, 1:], vocab),
         "copy_prev": copy_ce,
         "copy_prev_eps": eps,

@@ -13,10 +13,11 @@ from gaia_app.pipelines.gaia1_world_model import WorldModelRolloutPipeline
 V, T, M, N, E = 16, 3, 2, 5, 8
 
 
-@pytest.fixture(scope="module")
-def net() -> WorldModel:
+@pytest.fixture(scope="module", params=[False, True], ids=["plain", "previous_frame_shortcut"])
+def net(request) -> WorldModel:
     torch.manual_seed(0)
-    return WorldModel(V, dim=32, depth=2, heads=4, kv_heads=2, frames=T, text_tokens=M, image_tokens=N, text_dim=E).eval()
+    return WorldModel(V, dim=32, depth=2, heads=4, kv_heads=2, frames=T, text_tokens=M, image_tokens=N, text_dim=E,
+                      previous_frame_shortcut=request.param).eval()
 
 
 def test_eq3_guidance_arithmetic() -> None:

@@ -58,3 +58,18 @@ def collate_clips(samples: list[dict[str, Any]]) -> dict[str, Any]:
         else:
             batch[key] = torch.stack(values)
     return batch
+
+
+def collate_token_windows(samples: list[dict[str, Any]]) -> dict[str, Any]:
+    """Token windows → {"tokens": (b, t, n), "actions"?: (b, t, 2), "timestamps"?: (b, t), "text"?: b lists of t}.
+
+    A key present in some windows but not others (e.g. one segment without captions) is an error.
+    """
+    batch: dict[str, Any] = {}
+    for key in sorted(set().union(*samples)):
+        have = [key in s for s in samples]
+        if not all(have):
+            raise ClipError(f"token batch mixes windows with and without '{key}' ({sum(have)} of {len(samples)} have it)")
+        values = [s[key] for s in samples]
+        batch[key] = values if key == "text" else torch.stack(values)
+    return batch

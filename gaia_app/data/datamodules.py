@@ -10,7 +10,7 @@ import lightning as L
 import numpy as np
 from torch.utils.data import DataLoader, Dataset, Subset
 
-from gaia_app.data.collate import collate_clips, collate_frames
+from gaia_app.data.collate import collate_clips, collate_frames, collate_token_windows
 from gaia_app.data.datasets import ClipsDataset, ClipSource, FramesDataset
 from gaia_app.data.sampling import BalancedSampler, balancing_weights, clip_features
 from gaia_app.data.token_cache import TokenWindows, find_segments, load_segment, split_spans
@@ -128,7 +128,8 @@ class ClipDataModule(ClipSourceDataModule):
 
 
 class TokenCacheDataModule(L.LightningDataModule):
-    """Windows of cached tokens for world models: batches {"tokens": (b, t, n), "actions"?: (b, t, 2)}.
+    """Windows of cached tokens for world models: batches {"tokens": (b, t, n), "actions"?: (b, t, 2),
+    "text"?: b lists of t captions} (`collate_token_windows`).
 
     Args:
         path: a token `.npy` file or a folder of them (see token_cache.py).
@@ -154,7 +155,9 @@ class TokenCacheDataModule(L.LightningDataModule):
         self.val_set = TokenWindows(segments, val, self.seq_len, self.seq_len)
 
     def train_dataloader(self) -> DataLoader:
-        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, num_workers=self.num_workers, drop_last=True)
+        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, num_workers=self.num_workers,
+                          drop_last=True, collate_fn=collate_token_windows)
 
     def val_dataloader(self) -> DataLoader:
-        return DataLoader(self.val_set, batch_size=self.batch_size, num_workers=self.num_workers)
+        return DataLoader(self.val_set, batch_size=self.batch_size, num_workers=self.num_workers,
+                          collate_fn=collate_token_windows)

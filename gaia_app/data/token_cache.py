@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -105,8 +106,8 @@ def find_segments(path: str | Path) -> list[Path]:
 
 class TokenWindows(Dataset):
     """Windows of `seq_len` steps from token segments →
-    {"tokens": (t, n) int64, "actions"?: (t, 2), "timestamps"?: (t,) float32 seconds from the window start}.
-    Captions stay on the segments (`segments[i].text`): strings do not batch.
+    {"tokens": (t, n) int64, "actions"?: (t, 2), "timestamps"?: (t,) float32 seconds from the window start,
+    "text"?: t captions (None where a step has none)}; `collate_token_windows` batches them.
 
     `spans` lists (segment index, first step, last step exclusive) regions to cut windows from,
     so that train and validation can use disjoint parts of one segment.
@@ -121,7 +122,7 @@ class TokenWindows(Dataset):
     def __len__(self) -> int:
         return len(self.index)
 
-    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+    def __getitem__(self, i: int) -> dict[str, Any]:
         s, start = self.index[i]
         seg = self.segments[s]
         item = {"tokens": torch.from_numpy(seg.tokens[start : start + self.seq_len])}
@@ -130,6 +131,8 @@ class TokenWindows(Dataset):
         if seg.timestamps is not None:
             times = seg.timestamps[start : start + self.seq_len]
             item["timestamps"] = torch.from_numpy(times - times[0]).float()
+        if seg.text is not None:
+            item["text"] = list(seg.text[start : start + self.seq_len])
         return item
 
 

@@ -118,8 +118,10 @@ class AutoregressiveSampler:
     @staticmethod
     def step(net: WorldModel, tokens: torch.Tensor, streams: Conditions, t: int, start: int) -> torch.Tensor:
         """Embedded positions (B, s, d) of step t in the window beginning at step `start`."""
-        both = tokens[:, t : t + 1].repeat(streams.text.shape[0] // tokens.shape[0], 1, 1)  # one copy per stream
-        return net.embed(both, streams.steps(t, t + 1), t - start)
+        copies = streams.text.shape[0] // tokens.shape[0]  # one copy per stream
+        both = tokens[:, t : t + 1].repeat(copies, 1, 1)
+        previous = tokens[:, t - 1].repeat(copies, 1) if t > start else None
+        return net.embed(both, streams.steps(t, t + 1), t - start, previous)
 
     @staticmethod
     def prefill(net: WorldModel, tokens: torch.Tensor, streams: Conditions, start: int, t: int) -> torch.Tensor:

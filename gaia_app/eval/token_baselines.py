@@ -11,6 +11,7 @@ on the evaluated tokens themselves (an optimistic baseline, so beating it is a c
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 
@@ -32,3 +33,18 @@ def copy_previous_cross_entropy(tokens: torch.Tensor, vocab: int) -> tuple[float
     eps = min(max(1.0 - same, 1e-6), 1 - 1e-6)
     ce = -(same * math.log(1.0 - eps) + (1.0 - same) * math.log(eps / (vocab - 1)))
     return ce, eps
+
+
+@torch.no_grad()
+def model_cross_entropy(logits_fn: Callable[[torch.Tensor], torch.Tensor], windows: torch.Tensor, batch: int = 8) -> float:
+    """Mean eq. 1 cross-entropy (nats/token) over image tokens of frames 2..T, the frames the copy baseline scores.
+
+    logits_fn: tokens (b, t, n) → logits (b, t, n, V), e.g. a world model with null conditions.
+    windows: (w, t, n) int64.
+    """
+    total, count = 0.0, 0
+    for chunk in windows.split(batch):
+        logits = logits_fn(chunk)[:, 1:]
+        nll = torch.nn.functional.cross_entropy(logits.flatten(0, 2), chunk[:, 1:].flatten(), reduction="sum")
+        total, count = total + nll.item(), count + chunk[:, 1:].numel()
+    return total / count

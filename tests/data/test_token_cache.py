@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from gaia_app.data.clip import ClipError
+from gaia_app.data.collate import collate_token_windows
 from gaia_app.data.datamodules import TokenCacheDataModule
 
 
@@ -23,6 +25,27 @@ def test_folder_of_segments_with_actions(tmp_path: Path) -> None:
     val_values = {int(b["tokens"].max()) for b in dm.val_dataloader()}
     train_values = {int(x["tokens"][0, 0]) for x in dm.train_set}
     assert val_values == {3} and train_values == {0, 1, 2}
+
+
+def test_captions_batch_as_lists_per_window(tmp_path: Path) -> None:
+    np.save(tmp_path / "seg.npy", np.zeros((20, 4), dtype=np.int64))
+    captions = [f"frame {i}" if i % 3 else None for i in range(20)]
+    (tmp_path / "seg.text.json").write_text(json.dumps(captions))
+    dm = TokenCacheDataModule(str(tmp_path), seq_len=4, stride=4, val_fraction=0.2, batch_size=2)
+    dm.setup()
+    batch = next(iter(dm.val_dataloader()))
+    assert batch["tokens"].shape == (1, 4, 4)  # 4 of 20 steps held out: one window
+    assert batch["text"] == [captions[16:20]]  # b lists of t captions, None kept
+
+
+def test_windows_with_and_without_captions_do_not_mix(tmp_path: Path) -> None:
+    for name in ("a", "b"):
+        np.save(tmp_path / f"{name}.npy", np.zeros((8, 4), dtype=np.int64))
+    (tmp_path / "a.text.json").write_text(json.dumps(["x"] * 8))
+    dm = TokenCacheDataModule(str(tmp_path), seq_len=4, stride=4, val_fraction=0.5, batch_size=2)
+    dm.setup()
+    with pytest.raises(ClipError, match="'text'"):
+        collate_token_windows([dm.train_set[0], dm.val_set[0]])
 
 
 def test_bad_token_file_is_named(tmp_path: Path) -> None:

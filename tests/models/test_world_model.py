@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from einops import rearrange
 
 from gaia_app.models.gaia1.world_model import Conditions, WorldModel, next_token_loss
 from gaia_app.nn.attention import KVCache
@@ -27,8 +28,9 @@ def conditions(net: WorldModel, text, actions) -> Conditions:
     return net.conditioner(text.shape[0], text.shape[1], text, actions)
 
 
-def test_perturbing_a_later_image_token_leaves_earlier_logits_unchanged() -> None:
-    net = tiny()
+@pytest.mark.parametrize("shortcut", [False, True])
+def test_perturbing_a_later_image_token_leaves_earlier_logits_unchanged(shortcut: bool) -> None:
+    net = tiny(previous_frame_shortcut=shortcut)
     tokens, text, actions = inputs()
     cond = conditions(net, text, actions)
     before = net(tokens, cond)
@@ -70,8 +72,24 @@ def test_loss_is_cross_entropy_on_image_tokens_only() -> None:
     torch.testing.assert_close(next_token_loss(net, tokens, conditions(net, text, moved)), manual)
 
 
-def test_kv_cache_logits_equal_full_recompute() -> None:
-    net = tiny()
+def test_previous_frame_shortcut_adds_the_earlier_token_where_its_cell_is_predicted() -> None:
+    plain, net = tiny(), tiny(previous_frame_shortcut=True)  # no extra parameters: identical weights
+    tokens, text, actions = inputs()
+    cond = conditions(plain, text, actions)
+    previous = torch.randint(0, V, (2, N))
+    for prev in (None, previous):
+        diff = rearrange(net.embed(tokens, cond, previous=prev) - plain.embed(tokens, cond), "b (t s) d -> b t s d", t=T)
+        earlier = torch.cat([previous[:, None], tokens[:, :-1]], dim=1)
+        expected = torch.zeros_like(diff)
+        expected[:, :, M - 1 : M + N - 1] = net.token_embedding(earlier)  # slot m - 1 + i predicts z_{t,i}
+        if prev is None:
+            expected[:, 0] = 0  # the step opening the window has no earlier frame
+        torch.testing.assert_close(diff, expected)
+
+
+@pytest.mark.parametrize("shortcut", [False, True])
+def test_kv_cache_logits_equal_full_recompute(shortcut: bool) -> None:
+    net = tiny(previous_frame_shortcut=shortcut)
     tokens, text, actions = inputs()
     cond = conditions(net, text, actions)
     x = net.embed(tokens, cond)  # (b, T·s, d)

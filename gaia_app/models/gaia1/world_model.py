@@ -109,6 +109,13 @@ class WorldModel(nn.Module):
         text_tokens: m (≥ 1: the last text token of a step predicts that step's first image token).
         image_tokens: n. action_tokens: l. text_dim: e.
         cond_drop: conditioning-mode rates (see WorldModelConditioner). checkpointing: activation checkpointing.
+        tie_embeddings: share the token embedding with the output head, so "predict the token embedded
+            here" needs no separately learned output row per token (helps small token sets).
+        previous_frame_shortcut: add to the position that predicts z_{t,i} the embedding of z_{t-1,i}, the
+            token at the same grid cell one frame earlier (not in the paper; off in the paper preset).
+            Learning to find that cell by attention alone takes far more data than a CPU run sees: on
+            one minute of commaVQ tokens the model without it memorises the training frames and never
+            beats copying the previous frame (docs/world_model.md has the ablation).
     """
 
     block_types = (TransformerBlock,)
@@ -116,13 +123,15 @@ class WorldModel(nn.Module):
     def __init__(self, vocab_size: int, dim: int, depth: int, heads: int, kv_heads: int | None = None,
                  frames: int = 26, text_tokens: int = 32, image_tokens: int = 576, action_tokens: int = 2,
                  text_dim: int = 384, mlp_ratio: float = 4.0, dropout: float = 0.0,
-                 cond_drop: Mapping[str, float] | None = None, checkpointing: bool = False):
+                 cond_drop: Mapping[str, float] | None = None, checkpointing: bool = False,
+                 tie_embeddings: bool = False, previous_frame_shortcut: bool = False):
         super().__init__()
         if text_tokens < 1:
             raise ValueError("text_tokens must be ≥ 1: the last text token of step t predicts z_{t,1}")
         self.vocab_size, self.frames = vocab_size, frames
         self.m, self.n, self.l = text_tokens, image_tokens, action_tokens
         self.step_len = text_tokens + image_tokens + action_tokens
+        self.previous_frame_shortcut = previous_frame_shortcut
         self.conditioner = WorldModelConditioner(dim, text_dim, text_tokens, action_tokens, cond_drop)
         self.token_embedding = nn.Embedding(vocab_size, dim)
         self.temporal = nn.Parameter(torch.zeros(frames, dim))  # shared by all tokens of a step
@@ -130,6 +139,8 @@ class WorldModel(nn.Module):
         self.transformer = CausalTransformer(dim, depth, heads, kv_heads, mlp_ratio, dropout, checkpointing)
         self.head = nn.Linear(dim, vocab_size, bias=False)
         self.initialize_weights()
+        if tie_embeddings:
+            self.head.weight = self.token_embedding.weight
 
     def initialize_weights(self) -> None:
         """GPT-2 init for the transformer and head, N(0, 0.02) for embeddings and positions."""
@@ -137,17 +148,33 @@ class WorldModel(nn.Module):
         for p in (self.token_embedding.weight, self.temporal, self.spatial, self.head.weight):
             nn.init.normal_(p, std=0.02)
 
-    def embed(self, tokens: torch.Tensor, cond: Conditions, start: int = 0) -> torch.Tensor:
+    def embed(self, tokens: torch.Tensor, cond: Conditions, start: int = 0,
+              previous: torch.Tensor | None = None) -> torch.Tensor:
         """Interleaved, position-embedded inputs of whole steps (GAIA-1 §2.1).
 
         tokens: (b, t, n) int64; cond: t steps; start: window index of the first step → (b, t·s, d).
+        previous: (b, n) tokens of the step before tokens[:, 0] within the window (previous-frame
+            shortcut only); None when tokens[:, 0] opens the window.
         """
         t = tokens.shape[1]
         if start + t > self.frames:
             raise ValueError(f"steps {start}..{start + t - 1} exceed the context of T={self.frames} steps")
         x = torch.cat([cond.text, self.token_embedding(tokens), cond.actions], dim=2)  # (b, t, s, d)
         x = x + self.temporal[start : start + t, None] + self.spatial
+        if self.previous_frame_shortcut:
+            x = x + self.shortcut(tokens, previous)
         return rearrange(x, "b t s d -> b (t s) d")
+
+    def shortcut(self, tokens: torch.Tensor, previous: torch.Tensor | None) -> torch.Tensor:
+        """(b, t, s, d): embedding of z_{t-1,i} at the position predicting z_{t,i}, i.e. slot m - 1 + i.
+
+        The step opening the window gets zeros there, exactly as in training windows.
+        """
+        earlier = self.token_embedding(tokens[:, :-1])  # (b, t - 1, n, d)
+        first = torch.zeros_like(earlier[:, :1]) if previous is None else self.token_embedding(previous[:, None])
+        earlier = torch.cat([first, earlier], dim=1)
+        # slots before m - 1 (text) and after m + n - 2 (last image token, actions) get nothing
+        return nn.functional.pad(earlier, (0, 0, self.m - 1, self.l + 1))
 
     def decode(self, x: torch.Tensor, cache: KVCache | None = None) -> torch.Tensor:
         """Hidden states (b, L, d) of embedded positions x: (b, L, d), after the cache's positions if given."""
