@@ -19,7 +19,8 @@ EXPERIMENTS = sorted(str(p.relative_to(CONF_DIR / "experiment").with_suffix(""))
 
 def shrink(experiment: str) -> list[str]:
     """What keeps instantiation cheap for an experiment: its family's tiny net and a CPU trainer."""
-    net = "gaia1_world_model_tiny" if "world_model" in experiment else "gaia1_tokenizer_tiny"
+    family = next((f for f in ("world_model", "video_decoder") if f in experiment), "tokenizer")
+    net = f"gaia1_{family}_tiny"
     return [f"model/net={net}", "trainer=tiny"]
 
 

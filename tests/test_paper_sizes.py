@@ -9,7 +9,8 @@ from omegaconf import OmegaConf
 
 from tests.conftest import CONF_DIR
 
-PAPER_SIZES = {"gaia1_tokenizer_paper": 0.3e9, "gaia1_world_model_paper": 6.5e9}  # GAIA-1 §4.1, §4.2
+# GAIA-1 §4.1, §4.2, §4.3
+PAPER_SIZES = {"gaia1_tokenizer_paper": 0.3e9, "gaia1_world_model_paper": 6.5e9, "gaia1_video_decoder_paper": 2.6e9}
 
 
 @pytest.mark.parametrize("preset", sorted(PAPER_SIZES))
@@ -27,3 +28,14 @@ def test_world_model_paper_sequence_length() -> None:
     with torch.device("meta"):
         net = instantiate(cfg)()
     assert net.frames * net.step_len == 15_860
+
+
+def test_video_decoder_paper_reads_the_paper_tokenizer() -> None:
+    """GAIA-1 §4.1, §4.3: T' = 7 frames of 288×512, tokens on the tokenizer's 18×32 grid from K = 8192 codes."""
+    net_dir = CONF_DIR / "model" / "net"
+    with torch.device("meta"):
+        decoder = instantiate(OmegaConf.load(net_dir / "gaia1_video_decoder_paper.yaml"))()
+        tokenizer = instantiate(OmegaConf.load(net_dir / "gaia1_tokenizer_paper.yaml"))()
+    assert decoder.frames == 7 and decoder.image_size == (288, 512) and decoder.token_grid == (18, 32)
+    assert decoder.vocab_size == tokenizer.codebook_size
+    assert decoder.downsampling == (tokenizer.downsampling, tokenizer.downsampling)

@@ -25,13 +25,7 @@ from gaia_app.viz.plots import LOG_ROOT, POSITION, ROOT, save_figure, save_token
 V, T, M, N, E, B, K = 32, 3, 2, 8, 8, 3, 4
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tensors this small decode fastest on one thread; two spinning threads stall when the CPU is shared."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

@@ -45,3 +45,17 @@ def codebook_perplexity(tokens: torch.Tensor, codebook_size: int) -> torch.Tenso
     p = counts / counts.sum()
     entropy = -(p[p > 0] * p[p > 0].log()).sum()
     return entropy.exp()
+
+
+def temporal_flicker(video: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """Mean |Δvideo − Δreference| over consecutive-frame differences: (b, t, c, h, w) twice → (b,).
+
+    Zero when the decoded video changes from frame to frame exactly as the reference does, whatever
+    its per-frame error; frame-by-frame decoding that jitters around the truth scores high
+    (the reason for GAIA-1's video decoder, §2.4). Needs t ≥ 2; same value range as the inputs.
+    """
+    if video.shape != reference.shape or video.ndim != 5 or video.shape[1] < 2:
+        raise ValueError(f"temporal_flicker needs two (b, t ≥ 2, c, h, w) videos of one shape, got "
+                         f"{tuple(video.shape)} and {tuple(reference.shape)}")
+    change = video.diff(dim=1) - reference.diff(dim=1)
+    return change.abs().flatten(1).mean(1)

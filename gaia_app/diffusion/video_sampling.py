@@ -1,0 +1,44 @@
+"""Sampling one window of the GAIA-1 video decoder (GAIA-1 §5.2, Fig. 4), shared by training media and
+the decoding pipeline.
+
+Legend: b batch, t frames in the window, h × w token grid, H × W image size; images in [-1, 1].
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule
+from gaia_app.diffusion.samplers import Denoiser, ImageVideoBlend
+from gaia_app.models.gaia1.video_decoder import VideoDecoder
+
+
+@torch.no_grad()
+def sample_window(net: VideoDecoder, schedule: CosineNoiseSchedule, sampler: Callable, tokens: torch.Tensor,
+                  token_mask: torch.Tensor, context: torch.Tensor, context_mask: torch.Tensor,
+                  blend: ImageVideoBlend | None = None, generator: torch.Generator | None = None,
+                  callback: Callable | None = None) -> torch.Tensor:
+    """Frames (b, t, 3, H, W) of one window, context frames copied through.
+
+    tokens (b, t, h, w) int64; token_mask (b, t) or (b, t, h, w) bool; context (b, t, 3, H, W) clean
+    frames (any values where not given); context_mask (b, t) bool. sampler: e.g. DDIMSampler.
+    Context frames enter the noisy input as the forward process would noise them at every step, as in
+    training, so the decoder never sees its own (never trained) guess for them.
+    """
+    given = context_mask[:, :, None, None, None]
+
+    def denoiser(temporal: bool) -> Denoiser:
+        def denoise(x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+            fresh = torch.randn(context.shape, generator=generator, device=context.device)
+            x = torch.where(given, schedule.add_noise(context, fresh, step), x)
+            return net(x, step, tokens, token_mask, context, context_mask, temporal=temporal)
+        return denoise
+
+    denoise = denoiser(True)
+    if blend is not None:  # eq. 4: image and video denoising mixed at random steps
+        denoise = blend.denoiser(denoise, denoiser(False), generator)
+    noise = torch.randn(context.shape, generator=generator, device=context.device)
+    out = sampler(denoise, noise, generator=generator, callback=callback)
+    return torch.where(given, context, out.clamp(-1, 1))
