@@ -30,7 +30,7 @@ def test_world_model_experiment_trains_and_logs_perplexity(token_cache: Path, tm
     cfg = compose_config("train", [
         "experiment=gaia1/world_model_tiny", "trainer=tiny", "logger=csv", "extras.print_config=false", "trainer.max_steps=4",
         "trainer.val_check_interval=2", "trainer.limit_val_batches=1",
-        f"data.path={token_cache}", "model.net.vocab_size=16", "model.net.image_tokens=12", "model.net.dim=32",
+        f"data.path={token_cache}", "data.frame_stride=1", "model.net.vocab_size=16", "model.net.image_tokens=12", "model.net.dim=32",
         "model.net.depth=1", "model.net.heads=2", "model.net.kv_heads=1",
     ], tmp_path)
     assert cfg.trainer.gradient_clip_val == 1.0 and list(cfg.model.optim.betas) == [0.9, 0.95]
