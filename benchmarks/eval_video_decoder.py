@@ -63,11 +63,12 @@ def denoiser_steps_per_second(net: VideoDecoder, frames: int, repeats: int = 3) 
     x = torch.randn(1, frames, 3, height, width)
     args = (torch.full((1,), 500), torch.zeros(1, frames, h, w, dtype=torch.long), torch.ones(1, frames, dtype=torch.bool),
             torch.zeros_like(x), torch.zeros(1, frames, dtype=torch.bool))
+    rendered = torch.zeros_like(x) if net.render_tokens else None
     with torch.no_grad():
-        net(x, *args)
+        net(x, *args, rendered=rendered)
         start = time.perf_counter()
         for _ in range(repeats):
-            net(x, *args)
+            net(x, *args, rendered=rendered)
     return repeats / (time.perf_counter() - start)
 
 
@@ -100,19 +101,20 @@ def main() -> None:
     full = held_out_clips(run_cfg, args.clips, args.frames)  # 25 Hz
     truth = full[:, ::4]  # 6.25 Hz, N frames
     tokens = module.tokenize(truth)
-    framewise = module.tokenizer.decode(rearrange(tokens, "b t h w -> (b t) h w")).clamp(-1, 1)
-    framewise = rearrange(framewise, "(b t) c h w -> b t c h w", b=truth.shape[0])
+    framewise = module.render_tokens(tokens)
     results = {"clips": args.clips, "frames_6_25hz": args.frames, "framewise_tokenizer": scores(framewise, truth), "samplers": {}}
     decoded = {}
     for name in args.samplers.split(","):
         cls, steps = SAMPLERS[name]
-        pipe = VideoDecodingPipeline(net, schedule, cls(schedule, steps=steps), module.frames, module.context_frames)
+        pipe = VideoDecodingPipeline(net, schedule, cls(schedule, steps=steps), module.frames, module.context_frames,
+                                    render_tokens=module.render_tokens)
         start = time.perf_counter()
         decoded[name] = pipe.decode(tokens, torch.Generator().manual_seed(args.seed))
         results["samplers"][name] = {**scores(decoded[name], truth), "seconds": time.perf_counter() - start}
         print(name, results["samplers"][name], flush=True)
     best = decoded.get("ddim50", next(iter(decoded.values())))
-    pipe = VideoDecodingPipeline(net, schedule, DDIMSampler(schedule, steps=20), module.frames, module.context_frames)
+    pipe = VideoDecodingPipeline(net, schedule, DDIMSampler(schedule, steps=20), module.frames, module.context_frames,
+                                render_tokens=module.render_tokens)
     up = pipe(tokens, upsample=2, generator=torch.Generator().manual_seed(args.seed))
     inserted = torch.ones(up.quadruple.shape[1], dtype=torch.bool)
     inserted[::4] = False
@@ -123,7 +125,8 @@ def main() -> None:
         "flicker_25hz": scores(up.quadruple, full)["flicker"],
     }
     mid = VideoDecoder(vocab_size=net.vocab_size, token_grid=net.token_grid, image_size=net.image_size, frames=module.frames,
-                       channels=64, channel_mults=(1, 2, 4), res_blocks=2, attention_levels=(2,))
+                       channels=64, channel_mults=(1, 2, 4), res_blocks=2, attention_levels=(2,),
+                       render_tokens=net.render_tokens)
     results["denoiser_steps_per_s"] = {
         "tiny": denoiser_steps_per_second(net, module.frames),
         "mid": denoiser_steps_per_second(mid.eval(), module.frames),

@@ -64,10 +64,10 @@ def test_validation_logs_every_task(decoder_run: Path) -> None:
     assert media["val/decoder/denoising_steps"].shape == (1, module.media_steps, 3, 64, 112)
 
 
-def tiny_pipeline(**kw) -> VideoDecodingPipeline:
+def tiny_pipeline(rendering: bool = False, **kw) -> VideoDecodingPipeline:
     torch.manual_seed(0)
     net = VideoDecoder(vocab_size=16, token_grid=(2, 4), image_size=(8, 16), frames=7, channels=8, channel_mults=(1, 2),
-                       attention_levels=(1,), heads=2, token_dim=8).eval()
+                       attention_levels=(1,), heads=2, token_dim=8, render_tokens=rendering).eval()
     schedule = CosineNoiseSchedule()
     return VideoDecodingPipeline(net, schedule, DDIMSampler(schedule, steps=3), frames=7, context=2, **kw)
 
@@ -100,3 +100,21 @@ def test_window_copies_context_frames_through() -> None:
     mask = torch.tensor([[True, True, False, False, False, False, False]])
     out = pipe.window(torch.randint(0, 16, (1, 7, 2, 4)), ~mask, context, mask, torch.Generator().manual_seed(0))
     assert torch.equal(out[:, :2], context[:, :2]) and not torch.equal(out[:, 2:], context[:, 2:])
+
+
+
+def test_decoder_with_rendered_tokens_needs_and_uses_a_renderer() -> None:
+    """A decoder built with render_tokens gets each window's tokens rendered by the given function."""
+    with pytest.raises(ValueError, match="render_tokens=True: pass render_tokens="):
+        tiny_pipeline(rendering=True)
+    seen = []
+
+    def render(tokens: torch.Tensor) -> torch.Tensor:  # (b, t, 2, 4) → (b, t, 3, 8, 16): one grey level per token
+        seen.append(tuple(tokens.shape))
+        grey = tokens.float()[:, :, None] / 8 - 1
+        return grey.repeat_interleave(4, -1).repeat_interleave(4, -2).expand(-1, -1, 3, -1, -1)
+
+    tokens = torch.randint(0, 16, (1, 9, 2, 4))
+    video = tiny_pipeline(rendering=True, render_tokens=render)(tokens, upsample=1)
+    assert video.base.shape == (1, 9, 3, 8, 16) and video.double.shape == (1, 17, 3, 8, 16)
+    assert seen[:2] == [(1, 7, 2, 4), (1, 4, 2, 4)]  # the backward windows of 9 frames: last 7, then 2 + 2 context

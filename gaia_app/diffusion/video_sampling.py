@@ -19,11 +19,12 @@ from gaia_app.models.gaia1.video_decoder import VideoDecoder
 def sample_window(net: VideoDecoder, schedule: CosineNoiseSchedule, sampler: Callable, tokens: torch.Tensor,
                   token_mask: torch.Tensor, context: torch.Tensor, context_mask: torch.Tensor,
                   blend: ImageVideoBlend | None = None, generator: torch.Generator | None = None,
-                  callback: Callable | None = None) -> torch.Tensor:
+                  callback: Callable | None = None, rendered: torch.Tensor | None = None) -> torch.Tensor:
     """Frames (b, t, 3, H, W) of one window, context frames copied through.
 
     tokens (b, t, h, w) int64; token_mask (b, t) or (b, t, h, w) bool; context (b, t, 3, H, W) clean
     frames (any values where not given); context_mask (b, t) bool. sampler: e.g. DDIMSampler.
+    rendered: (b, t, 3, H, W) the tokens decoded frame by frame, for a decoder built with render_tokens.
     Context frames enter the noisy input as the forward process would noise them at every step, as in
     training, so the decoder never sees its own (never trained) guess for them.
     """
@@ -33,7 +34,7 @@ def sample_window(net: VideoDecoder, schedule: CosineNoiseSchedule, sampler: Cal
         def denoise(x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
             fresh = torch.randn(context.shape, generator=generator, device=context.device)
             x = torch.where(given, schedule.add_noise(context, fresh, step), x)
-            return net(x, step, tokens, token_mask, context, context_mask, temporal=temporal)
+            return net(x, step, tokens, token_mask, context, context_mask, temporal=temporal, rendered=rendered)
         return denoise
 
     denoise = denoiser(True)

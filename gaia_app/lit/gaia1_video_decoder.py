@@ -132,6 +132,16 @@ class VideoDecoderModule(GaiaModule):
         tokens = self.tokenizer.encode(rearrange(frames, "b t c h w -> (b t) c h w"))
         return rearrange(tokens, "(b t) h w -> b t h w", b=frames.shape[0])
 
+    @torch.no_grad()
+    def render_tokens(self, tokens: torch.Tensor) -> torch.Tensor:
+        """tokens (b, t, h, w) → the frozen tokenizer's frame-by-frame decoding (b, t, 3, H, W) in [-1, 1]."""
+        frames = self.tokenizer.decode(rearrange(tokens, "b t h w -> (b t) h w")).clamp(-1, 1)
+        return rearrange(frames, "(b t) c h w -> b t c h w", b=tokens.shape[0])
+
+    def rendered(self, net: VideoDecoder, tokens: torch.Tensor) -> torch.Tensor | None:
+        """`render_tokens(tokens)` for a decoder that takes it, else None."""
+        return self.render_tokens(tokens) if net.render_tokens else None
+
     # ---- objective ----------------------------------------------------------------------------------
 
     def masks(self, task: DecoderTask, tokens: torch.Tensor, dropout: bool) -> tuple[torch.Tensor, torch.Tensor]:
@@ -151,7 +161,8 @@ class VideoDecoderModule(GaiaModule):
         x_t = self.schedule.add_noise(x0, noise, step)
         alpha, sigma = self.schedule.alpha_sigma(step)
         token_mask, context_mask = self.masks(task, tokens, dropout)
-        pred = net(x_t, step, tokens, token_mask, x0, context_mask, temporal=task.temporal)
+        pred = net(x_t, step, tokens, token_mask, x0, context_mask, temporal=task.temporal,
+                   rendered=self.rendered(net, tokens))
         target = task.target.to(x0.device)
         error = (pred - v_target(x0, noise, alpha, sigma))[:, target]
         return self.l1_weight * error.abs().mean() + self.l2_weight * error.pow(2).mean()
@@ -187,12 +198,13 @@ class VideoDecoderModule(GaiaModule):
         ones = torch.ones(tokens.shape[:2], dtype=torch.bool, device=tokens.device)
         decoded = sample_window(self.ema_decoder, self.schedule, self.sampler(self.media_steps), tokens, ones,
                                 torch.zeros_like(x0), ~ones, generator=torch.Generator(x0.device).manual_seed(0),
-                                callback=lambda i, t, x, x0_pred: steps.append(x0_pred[0, 0].clamp(-1, 1)))
-        framewise = self.tokenizer.decode(rearrange(tokens, "b t h w -> (b t) h w")).clamp(-1, 1)
+                                callback=lambda i, t, x, x0_pred: steps.append(x0_pred[0, 0].clamp(-1, 1)),
+                                rendered=self.rendered(self.ema_decoder, tokens))
+        framewise = self.render_tokens(tokens)
         return {
             "val/decoder/ground_truth": x0,
             "val/decoder/decoded": decoded,
-            "val/decoder/tokenizer_framewise": rearrange(framewise, "(b t) c h w -> b t c h w", b=x0.shape[0]),
+            "val/decoder/tokenizer_framewise": framewise,
             "val/decoder/denoising_steps": torch.stack(steps)[None],
             "val/decoder/tokens": tokens[:, 0],
         }

@@ -67,12 +67,19 @@ class VideoDecodingPipeline:
         blend: eq. 4 image/video blend (p = 0.25, w = 0.5 in the paper), or None.
         backward: decode from the end of the sequence (the paper's choice) or from the start.
         progress: a progress bar over windows.
+        render_tokens: tokens (b, t, h, w) → the tokenizer's frame-by-frame decoding (b, t, 3, H, W); required
+            by a decoder built with render_tokens (e.g. `VideoDecoderModule.render_tokens`).
     """
 
     def __init__(self, net: VideoDecoder, schedule: CosineNoiseSchedule, sampler: Callable, frames: int = 7,
-                 context: int = 2, blend: ImageVideoBlend | None = None, backward: bool = True, progress: bool = False):
+                 context: int = 2, blend: ImageVideoBlend | None = None, backward: bool = True, progress: bool = False,
+                 render_tokens: Callable[[torch.Tensor], torch.Tensor] | None = None):
         if not 0 < context < frames:
             raise ValueError(f"context frames must be in 1..{frames - 1}, got {context}")
+        if getattr(net, "render_tokens", False) and render_tokens is None:
+            raise ValueError("this video decoder was trained with render_tokens=True: pass render_tokens= (the "
+                             "tokenizer's frame-by-frame decoding, e.g. VideoDecoderModule.render_tokens)")
+        self.render_tokens = render_tokens if getattr(net, "render_tokens", False) else None
         self.net, self.schedule, self.sampler = net, schedule, sampler
         self.frames, self.context, self.blend = frames, context, blend
         self.backward, self.progress = backward, progress
@@ -80,8 +87,9 @@ class VideoDecodingPipeline:
     def window(self, tokens: torch.Tensor, token_mask: torch.Tensor, context: torch.Tensor, context_mask: torch.Tensor,
                generator: torch.Generator | None = None) -> torch.Tensor:
         """One window with this pipeline's sampler and blend (see `sample_window`)."""
+        rendered = self.render_tokens(tokens) if self.render_tokens is not None else None
         return sample_window(self.net, self.schedule, self.sampler, tokens, token_mask, context, context_mask,
-                             self.blend, generator)
+                             self.blend, generator, rendered=rendered)
 
     def decode(self, tokens: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """tokens (b, N, h, w) → frames (b, N, 3, H, W) at the tokens' rate (GAIA-1 §5.2 steps 1-3)."""

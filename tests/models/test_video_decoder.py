@@ -137,6 +137,31 @@ def test_shape_errors_are_named(change, message: str) -> None:
         tiny()(**change(inputs()))
 
 
+@torch.no_grad()
+def test_rendered_tokens_are_read_only_where_tokens_are_kept() -> None:
+    """render_tokens: the rendered pixels of a dropped token's patch change nothing; a kept patch's do."""
+    net = scramble(tiny(render_tokens=True)).eval()
+    x = inputs()
+    x["token_mask"] = torch.ones(2, 7, *GRID, dtype=torch.bool)
+    x["token_mask"][:, 3, 1, 2] = False  # the patch rows 4-7, columns 8-11 (D = 4)
+    x["rendered"] = torch.rand(2, 7, 3, H, W) * 2 - 1
+    y = dict(x, rendered=x["rendered"].clone())
+    y["rendered"][:, 3, :, 4:8, 8:12] = float("nan")
+    assert torch.equal(net(**x), net(**y))
+    y["rendered"][:, 3, :, 4:8, 8:12] = x["rendered"][:, 3, :, 4:8, 8:12]
+    y["rendered"][:, 3, :, 0:4, 0:4] += 0.5  # a kept token's patch
+    assert not torch.allclose(net(**x)[:, 3], net(**y)[:, 3])
+
+
+def test_rendered_tokens_are_required_exactly_when_built_for() -> None:
+    with pytest.raises(ValueError, match="render_tokens=True, so forward needs `rendered`"):
+        tiny(render_tokens=True)(**inputs())
+    with pytest.raises(ValueError, match="rendered has shape \\(2, 7, 3, 8, 24\\); expected \\(2, 7, 3, 16, 24\\)"):
+        tiny(render_tokens=True)(**inputs(), rendered=torch.zeros(2, 7, 3, 8, W))
+    with pytest.raises(ValueError, match="built with render_tokens=False"):
+        tiny()(**inputs(), rendered=torch.zeros(2, 7, 3, H, W))
+
+
 def test_other_image_sizes_expect_a_scaled_token_grid() -> None:
     net = tiny()
     x = dict(inputs(t=2), x_t=torch.zeros(2, 2, 3, 32, 16), context=torch.zeros(2, 2, 3, 32, 16))

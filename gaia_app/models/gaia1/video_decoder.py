@@ -14,7 +14,11 @@ start at zero, so a fresh decoder is exactly an image model.
 
 Each frame is conditioned on its own image tokens (embedded, brought to every U-Net resolution and
 added in each residual block), on clean context pixels where `context_mask` holds (GAIA-1 Fig. 4
-tasks) and on the diffusion step. The net predicts v (GAIA-1 §2.4, ref. [39]); the objective and
+tasks) and on the diffusion step. Optionally (`render_tokens=True`) each frame also receives its tokens
+rendered to pixels by the frozen tokenizer's image decoder as 3 more input channels, blanked where
+tokens are masked: GAIA-1 does not say how the decoder embeds tokens, and a small decoder trained
+briefly learns a 512-entry embedding from scratch far too slowly to read the tokens (docs/video_decoder.md).
+The net predicts v (GAIA-1 §2.4, ref. [39]); the objective and
 the samplers live in `gaia_app.diffusion`.
 """
 
@@ -32,6 +36,7 @@ from torch.utils.checkpoint import checkpoint
 from gaia_app.nn.conv import downsample, group_norm, upsample
 
 IN_CHANNELS = 7  # per frame: x_t (3) · masked clean context (3) · context mask (1)
+RENDERED_CHANNELS = 3  # with render_tokens: the tokens decoded frame by frame, blanked where masked
 
 
 def timestep_embedding(time: torch.Tensor, dim: int, max_period: float = 10_000.0) -> torch.Tensor:
@@ -172,6 +177,8 @@ class VideoDecoder(nn.Module):
             attention runs after every residual block at every level.
         heads: attention heads (spatial and temporal). token_dim: d. dropout: in the residual blocks.
         checkpointing: recompute each SpaceTimeBlock's activations in backward (GAIA-1 §4.3).
+        render_tokens: also take `rendered` (the tokenizer's frame-by-frame decoding of the tokens) as
+            input channels; forward then requires it.
     """
 
     block_types = (SpaceTimeBlock,)
@@ -179,9 +186,10 @@ class VideoDecoder(nn.Module):
     def __init__(self, vocab_size: int, token_grid: Sequence[int], image_size: Sequence[int], frames: int,
                  channels: int = 64, channel_mults: Sequence[int] = (1, 2, 4), res_blocks: int = 1,
                  attention_levels: Sequence[int] = (2,), heads: int = 4, token_dim: int = 64,
-                 dropout: float = 0.0, checkpointing: bool = False):
+                 dropout: float = 0.0, checkpointing: bool = False, render_tokens: bool = False):
         super().__init__()
         self.vocab_size, self.frames, self.channels, self.checkpointing = vocab_size, frames, channels, checkpointing
+        self.render_tokens = render_tokens
         self.token_grid, self.image_size = tuple(token_grid), tuple(image_size)
         self.downsampling = self._token_downsampling()
         self.unet_factor = 2 ** (len(channel_mults) - 1)
@@ -190,7 +198,7 @@ class VideoDecoder(nn.Module):
         time_dim = 4 * channels
         self.time_mlp = nn.Sequential(nn.Linear(channels, time_dim), nn.SiLU(), nn.Linear(time_dim, time_dim))
         self.token_embedding = nn.Embedding(vocab_size + 1, token_dim)  # last row: no token
-        self.stem = nn.Conv2d(IN_CHANNELS, channels, 3, padding=1)
+        self.stem = nn.Conv2d(IN_CHANNELS + RENDERED_CHANNELS * render_tokens, channels, 3, padding=1)
 
         def block(c_in: int, c_out: int, attend: bool) -> SpaceTimeBlock:
             return SpaceTimeBlock(c_in, c_out, time_dim, token_dim, heads, frames, attend, dropout)
@@ -256,7 +264,7 @@ class VideoDecoder(nn.Module):
         return height // self.downsampling[0], width // self.downsampling[1]
 
     def _check_inputs(self, x_t: torch.Tensor, time: torch.Tensor, tokens: torch.Tensor, token_mask: torch.Tensor,
-                      context: torch.Tensor, context_mask: torch.Tensor) -> None:
+                      context: torch.Tensor, context_mask: torch.Tensor, rendered: torch.Tensor | None) -> None:
         """Raise a ValueError naming the offending shape and the one expected."""
         if x_t.ndim != 5 or x_t.shape[2] != 3:
             raise ValueError(f"VideoDecoder: x_t must be (b, t, 3, H, W); got {tuple(x_t.shape)}")
@@ -276,6 +284,13 @@ class VideoDecoder(nn.Module):
                     "context_mask": (b, t)}
         given = {"time": time, "tokens": tokens, "token_mask": token_mask, "context": context,
                  "context_mask": context_mask}
+        if self.render_tokens:
+            if rendered is None:
+                raise ValueError("VideoDecoder: built with render_tokens=True, so forward needs `rendered` (b, t, 3, H, W), "
+                                 "the tokenizer's frame-by-frame decoding of the tokens")
+            expected["rendered"], given["rendered"] = tuple(x_t.shape), rendered
+        elif rendered is not None:
+            raise ValueError("VideoDecoder: got `rendered` but was built with render_tokens=False")
         for name, shape in expected.items():
             if tuple(given[name].shape) != shape:
                 raise ValueError(f"VideoDecoder: {name} has shape {tuple(given[name].shape)}; expected {shape} "
@@ -289,12 +304,23 @@ class VideoDecoder(nn.Module):
         tokens = torch.where(keep, tokens, no_token)  # their values are never read
         return rearrange(self.token_embedding(tokens), "b t h w d -> (b t) d h w")
 
-    def stem_input(self, x_t: torch.Tensor, context: torch.Tensor, context_mask: torch.Tensor) -> torch.Tensor:
-        """Per-frame input [x_t, context·mask, mask]: (b, t, 3, H, W) ×2, (b, t) → (b·t, 7, H, W)."""
+    def stem_input(self, x_t: torch.Tensor, context: torch.Tensor, context_mask: torch.Tensor,
+                   rendered: torch.Tensor | None = None, token_mask: torch.Tensor | None = None) -> torch.Tensor:
+        """Per-frame input [x_t, context·mask, mask(, rendered·token mask)]: (b, t, 3, H, W) ×2, (b, t)
+        → (b·t, 7, H, W), or (b·t, 10, H, W) with `rendered` (b, t, 3, H, W) and token_mask (b, t) / (b, t, h, w)."""
         mask = context_mask[:, :, None, None, None].to(x_t.dtype)
         clean = torch.where(mask.bool(), context, torch.zeros_like(context))  # zeros, even where context is NaN
-        mask = mask.expand(-1, -1, 1, *x_t.shape[-2:])
-        return rearrange(torch.cat([x_t, clean, mask], dim=2), "b t c h w -> (b t) c h w")
+        parts = [x_t, clean, mask.expand(-1, -1, 1, *x_t.shape[-2:])]
+        if rendered is not None and token_mask is not None:
+            parts.append(torch.where(self.pixel_token_mask(token_mask, x_t.shape[-2:]), rendered, torch.zeros_like(rendered)))
+        return rearrange(torch.cat(parts, dim=2), "b t c h w -> (b t) c h w")
+
+    def pixel_token_mask(self, token_mask: torch.Tensor, size: Sequence[int]) -> torch.Tensor:
+        """token_mask (b, t) or (b, t, h, w) → (b, t, 1, H, W): each token covers its D×D patch."""
+        if token_mask.ndim == 2:
+            return token_mask[:, :, None, None, None].expand(-1, -1, 1, *size)
+        dh, dw = self.downsampling
+        return repeat(token_mask, "b t h w -> b t 1 (h dh) (w dw)", dh=dh, dw=dw)
 
     def _block(self, block: SpaceTimeBlock, h: torch.Tensor, time: torch.Tensor, tokens: torch.Tensor,
                frames: int, temporal: bool) -> torch.Tensor:
@@ -303,20 +329,22 @@ class VideoDecoder(nn.Module):
         return block(h, time, tokens, frames, temporal)
 
     def forward(self, x_t: torch.Tensor, time: torch.Tensor, tokens: torch.Tensor, token_mask: torch.Tensor,
-                context: torch.Tensor, context_mask: torch.Tensor, temporal: bool = True) -> torch.Tensor:
+                context: torch.Tensor, context_mask: torch.Tensor, temporal: bool = True,
+                rendered: torch.Tensor | None = None) -> torch.Tensor:
         """v-prediction for a noised clip (GAIA-1 §2.4, eq. 2).
 
         x_t: (b, t, 3, H, W) noised frames; time: (b,) diffusion steps; tokens: (b, t, h, w) int64;
         token_mask: (b, t) bool, False → no tokens for that frame (interpolation, token dropout);
         context: (b, t, 3, H, W) clean frames, read only where context_mask (b, t) is True;
-        temporal: False skips the temporal layers, so frames are independent images.
+        temporal: False skips the temporal layers, so frames are independent images;
+        rendered: (b, t, 3, H, W) the tokens decoded by the tokenizer, required iff render_tokens.
         Returns v: (b, t, 3, H, W).
         """
-        self._check_inputs(x_t, time, tokens, token_mask, context, context_mask)
+        self._check_inputs(x_t, time, tokens, token_mask, context, context_mask, rendered)
         frames = x_t.shape[1]
         emb = repeat(self.time_mlp(timestep_embedding(time, self.channels)), "b e -> (b t) e", t=frames)
         tok = self.embed_tokens(tokens, token_mask)
-        h = self.stem(self.stem_input(x_t, context, context_mask))  # (b·t, c, H, W)
+        h = self.stem(self.stem_input(x_t, context, context_mask, rendered, token_mask))  # (b·t, c, H, W)
         skips = [h]
         for stage in self.down:
             for block in stage.blocks:
