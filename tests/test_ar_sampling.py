@@ -69,6 +69,14 @@ def test_first_frame_argmax_matches_teacher_forced_logits(net: WorldModel) -> No
     assert torch.equal(net(out, cond)[:, 1].argmax(-1), out[:, 1])
 
 
+def test_generation_from_no_context_matches_teacher_forcing(net: WorldModel) -> None:
+    """t0 = 0 (text-only and unconditional rollouts): the first frame opens the window with no earlier step."""
+    cond, _ = conds(net, 2, 2)
+    out = AutoregressiveSampler(TokenPicker("argmax"))(net, torch.zeros(2, 0, N, dtype=torch.long), cond, frames=2)
+    assert out.shape == (2, 2, N)
+    assert torch.equal(net(out, cond).argmax(-1), out)
+
+
 def test_sliding_window_generates_three_times_the_context(net: WorldModel) -> None:
     frames = 3 * T
     cond, _ = conds(net, 2, 1 + frames)

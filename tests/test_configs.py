@@ -81,9 +81,14 @@ def test_every_experiment_instantiates(experiment: str, tmp_path: Path, clip_roo
     assert sum(p.numel() for p in objects["model"].parameters()) > 0
 
 
-def test_generate_config_composes(tmp_path: Path) -> None:
-    cfg = compose_config("generate", ["ckpt=some.ckpt"], tmp_path)
+@pytest.mark.parametrize("guidance", options("guidance"))
+def test_generate_config_composes(guidance: str, tmp_path: Path) -> None:
+    from hydra.utils import instantiate
+
+    cfg = compose_config("generate", ["ckpt=some.ckpt", f"guidance={guidance}"], tmp_path)
     assert resolve_job(cfg)["mode"] == "reconstruct"
+    assert instantiate(cfg.guidance).scales(3, 4).shape == (3, 4)
+    assert instantiate(cfg.token_sampler).picker.mode == "top_k"
 
 
 def test_experiment_values_win_over_root_defaults(tmp_path: Path) -> None:

@@ -1,6 +1,8 @@
-"""`generate(cfg)`: run a trained checkpoint on clips.
+"""`generate(cfg)`: run trained checkpoints.
 
-mode=reconstruct writes mp4s, tokens, metrics and a .rrd; mode=tokenize writes a token cache for the world model.
+mode=reconstruct writes mp4s, tokens, metrics and a .rrd; mode=tokenize writes a token cache for the world model;
+the GAIA-1 rollout modes (video, action, text, text_action, text_only, unconditional) write futures
+(gaia_app/tasks/rollout.py).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from gaia_app.lit.gaia1_tokenizer import ImageTokenizerModule
 from gaia_app.data.token_cache import segment_done, write_segment
 from gaia_app.pipelines.gaia1_tokenizer import (ReconstructionOutput, TokenCachePipeline, TokenizerReconstructionPipeline,
                                                 camera_names, segment_names)
+from gaia_app.tasks.rollout import ROLLOUT_MODES, rollout
 from gaia_app.utils.run_dir import atomic_write_text, save_resolved_config
 from gaia_app.viz.media import log_token_map, to_hwc_uint8
 
@@ -110,18 +113,28 @@ def tokenize(cfg: DictConfig, module: ImageTokenizerModule, run_dir: Path) -> di
 MODES = {"reconstruct": (ImageTokenizerModule, reconstruct), "tokenize": (ImageTokenizerModule, tokenize)}
 
 
+def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """The single-checkpoint modes of `MODES` on `cfg.ckpt`."""
+    if cfg.mode not in MODES:
+        raise ValueError(f"mode={cfg.mode}: expected one of {sorted(MODES) + list(ROLLOUT_MODES)}")
+    if not cfg.ckpt:
+        raise ValueError(f"mode={cfg.mode} needs ckpt=<checkpoint of a trained tokenizer>")
+    module_type, run = MODES[cfg.mode]
+    module = load_module(cfg.ckpt, map_location=cfg.device)
+    if not isinstance(module, module_type):
+        raise TypeError(f"mode={cfg.mode} needs a {module_type.__name__} checkpoint; {cfg.ckpt} holds {type(module).__name__}")
+    return run(cfg, module, run_dir)
+
+
 def generate(cfg: DictConfig) -> dict[str, Any]:
     """Load `cfg.ckpt`, run `cfg.mode`, write results.json in the run dir and return the results."""
     L.seed_everything(cfg.seed, workers=True)
     run_dir = Path(cfg.paths.output_dir)
     save_resolved_config(cfg, run_dir)
-    if cfg.mode not in MODES:
-        raise ValueError(f"mode={cfg.mode}: expected one of {sorted(MODES)}")
-    module_type, run = MODES[cfg.mode]
-    module = load_module(cfg.ckpt, map_location=cfg.device)
-    if not isinstance(module, module_type):
-        raise TypeError(f"mode={cfg.mode} needs a {module_type.__name__} checkpoint; {cfg.ckpt} holds {type(module).__name__}")
-    results = run(cfg, module, run_dir)
+    if cfg.mode in ROLLOUT_MODES:
+        results = rollout(cfg, run_dir)
+    else:
+        results = run_component(cfg, run_dir)
     atomic_write_text(run_dir / "results.json", json.dumps(results, indent=2))
     log.info("mode=%s done; results.json in %s", cfg.mode, run_dir)
     return {"results": results, "run_dir": run_dir}

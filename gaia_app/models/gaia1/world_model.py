@@ -171,7 +171,10 @@ class WorldModel(nn.Module):
         The step opening the window gets zeros there, exactly as in training windows.
         """
         earlier = self.token_embedding(tokens[:, :-1])  # (b, t - 1, n, d)
-        first = torch.zeros_like(earlier[:, :1]) if previous is None else self.token_embedding(previous[:, None])
+        if previous is None:  # built from the shape, not from `earlier`, which is empty for a 1-step window
+            first = earlier.new_zeros(earlier.shape[0], 1, *earlier.shape[2:])
+        else:
+            first = self.token_embedding(previous[:, None])
         earlier = torch.cat([first, earlier], dim=1)
         # slots before m - 1 (text) and after m + n - 2 (last image token, actions) get nothing
         return nn.functional.pad(earlier, (0, 0, self.m - 1, self.l + 1))

@@ -1,0 +1,227 @@
+"""GAIA-1 end to end (GAIA-1 Fig. 1, §5): context video → tokens → world-model futures → video.
+
+Legend:
+    k futures, t0 context frames, f generated frames, t = t0 + f, all at the world model's rate
+    (6.25 Hz in GAIA-1, §2.3); h × w token grid, n = h·w; H × W images in [-1, 1].
+
+The three trained components stay separate checkpoints (tokenizer, world model, video decoder);
+`Gaia1Pipeline.from_checkpoints` loads them, checks they agree on the token layout, and the pipeline
+then runs every rollout mode of GAIA-1 §7: with or without video context, with text, actions, both or
+neither, guided by classifier-free guidance or a negative prompt, several futures in one batch.
+Without a video decoder each frame is decoded on its own by the tokenizer, at the world model's rate.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from einops import rearrange
+
+from gaia_app.diffusion.ar_sampling import AutoregressiveSampler
+from gaia_app.diffusion.guidance import ClassifierFreeGuidance
+from gaia_app.eval.token_perplexity import fit_window, token_log_perplexity
+from gaia_app.lit.checkpoint import load_module
+from gaia_app.models.gaia1.tokenizer import ImageTokenizer
+from gaia_app.models.gaia1.world_model import STREAMS, Conditions, WorldModel
+from gaia_app.pipelines.gaia1_video_decoder import VideoDecodingPipeline
+from gaia_app.pipelines.gaia1_world_model import WorldModelRolloutPipeline
+
+Captions = Sequence[str | None]
+
+
+@dataclass
+class Conditioning:
+    """What one rollout is conditioned on, step by step over all t = t0 + f steps.
+
+    captions: t captions (None where a step has none) or None (no text); actions: (t, 2) speed (m/s) and
+    curvature (1/m), or None; negative: t captions of a negative prompt (GAIA-1 §5.1) or None.
+    """
+
+    captions: Captions | None = None
+    actions: torch.Tensor | None = None
+    negative: Captions | None = None
+
+    def check(self, steps: int) -> None:
+        """Every given stream must cover exactly `steps` steps; the message names the stream."""
+        for name, value in (("captions", self.captions), ("negative", self.negative)):
+            if value is not None and len(value) != steps:
+                raise ValueError(f"conditioning.{name}: {len(value)} captions for {steps} steps (context + future)")
+        if self.actions is not None and tuple(self.actions.shape) != (steps, 2):
+            raise ValueError(f"conditioning.actions: shape {tuple(self.actions.shape)}, expected ({steps}, 2) "
+                             "(speed, curvature per context + future step)")
+
+
+@dataclass
+class Gaia1Rollout:
+    """tokens (k, t, h, w) int64; frames (k, t, 3, H, W) at the world model's rate; video (k, F, 3, H, W) at
+    `fps` (F = 4t − 3 at 25 Hz after two decoder doublings, else F = t); log_ppl (k, t) mean nats per token of
+    each frame under the world model (NaN for context frames); context_frames: t0."""
+
+    tokens: torch.Tensor
+    frames: torch.Tensor
+    video: torch.Tensor
+    fps: float
+    log_ppl: torch.Tensor
+    context_frames: int
+
+
+def load_component(path: str | Path, expected: type, role: str, device: str | torch.device):
+    """The LightningModule of checkpoint `path`, which must hold a `expected` (else a TypeError naming both)."""
+    module = load_module(path, map_location=device)
+    if not isinstance(module, expected):
+        raise TypeError(f"{role}={path} holds a {type(module).__name__} checkpoint, expected a {expected.__name__}")
+    return module.to(device)
+
+
+class Gaia1Pipeline:
+    """Tokenizer + world model + (optional) video decoder: rollouts from context frames and conditions.
+
+    Args:
+        tokenizer: the trained image tokenizer (encodes context frames; frame-by-frame decoding).
+        world_model: the trained world model. text_encoder: captions → (b, t, m, e), or None.
+        sampler: the token sampler (top-k by default, GAIA-1 §5.1). guidance: eq. 3 guidance or None.
+        decoder: the video decoding pipeline (§5.2) or None. upsample: decoder frame-rate doublings (0-2).
+        image_size: (H, W) of the tokenizer's images. rate: the world model's frame rate in Hz.
+    """
+
+    def __init__(self, tokenizer: ImageTokenizer, world_model: WorldModel, image_size: tuple[int, int],
+                 text_encoder: Callable | None = None, sampler: AutoregressiveSampler | None = None,
+                 guidance: ClassifierFreeGuidance | None = None, decoder: VideoDecodingPipeline | None = None,
+                 upsample: int = 2, rate: float = 6.25):
+        self.tokenizer, self.world_model, self.text_encoder = tokenizer, world_model, text_encoder
+        self.decoder, self.upsample, self.rate = decoder, upsample if decoder is not None else 0, rate
+        self.image_size = tuple(image_size)
+        self.token_grid = tuple(s // tokenizer.downsampling for s in self.image_size)
+        self.rollouts = WorldModelRolloutPipeline(world_model, sampler or AutoregressiveSampler(), guidance, STREAMS)
+        self.check_layout()
+
+    @classmethod
+    def from_checkpoints(cls, tokenizer: str | Path, world_model: str | Path, decoder: str | Path | None = None,
+                         image_size: tuple[int, int] | None = None, device: str = "cpu",
+                         decoder_steps: int | None = None, **kwargs) -> Gaia1Pipeline:
+        """Load the three components; `image_size` defaults to the decoder's (required without one).
+
+        decoder_steps: steps of the decoder run's own sampler (DDIM, §5.2: 50), None for its default.
+        kwargs: the constructor's sampler, guidance, upsample and rate.
+        """
+        from gaia_app.lit.gaia1_tokenizer import ImageTokenizerModule
+        from gaia_app.lit.gaia1_video_decoder import VideoDecoderModule
+        from gaia_app.lit.gaia1_world_model import WorldModelModule
+
+        tok = load_component(tokenizer, ImageTokenizerModule, "tokenizer_ckpt", device).tokenizer
+        wm = load_component(world_model, WorldModelModule, "world_model_ckpt", device)
+        video = None
+        if decoder is not None:
+            module = load_component(decoder, VideoDecoderModule, "decoder_ckpt", device)
+            net = module.ema_decoder.eval()
+            image_size = image_size or tuple(net.image_size)
+            render = _renderer(tok) if net.render_tokens else None
+            sampler = module.sampler(decoder_steps)
+            video = VideoDecodingPipeline(net, module.schedule, sampler, frames=module.frames,
+                                          context=module.context_frames, progress=True, render_tokens=render)
+        if image_size is None:
+            raise ValueError("image_size=(H, W) is needed when no decoder checkpoint gives it")
+        return cls(tok.eval(), wm.world_model.eval(), image_size, wm.text_encoder, decoder=video, **kwargs)
+
+    def check_layout(self) -> None:
+        """Tokenizer, world model and decoder must agree on the token grid and the vocabulary."""
+        h, w = self.token_grid
+        if self.world_model.n != h * w or self.world_model.vocab_size != self.tokenizer.codebook_size:
+            raise ValueError(f"world model expects {self.world_model.n} tokens per frame from {self.world_model.vocab_size} "
+                             f"codes; the tokenizer makes {h}×{w} = {h * w} at {self.image_size} from "
+                             f"{self.tokenizer.codebook_size} codes")
+        if self.decoder is not None:
+            net = self.decoder.net
+            if tuple(net.token_grid) != (h, w) or tuple(net.image_size) != self.image_size:
+                raise ValueError(f"video decoder works on {tuple(net.token_grid)} tokens at {tuple(net.image_size)}; "
+                                 f"the tokenizer makes {(h, w)} at {self.image_size}")
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.world_model.parameters()).device
+
+    @property
+    def fps(self) -> float:
+        return self.rate * 2**self.upsample
+
+    # ---- stages -------------------------------------------------------------------------------------
+
+    @torch.no_grad()
+    def encode(self, frames: torch.Tensor) -> torch.Tensor:
+        """Context frames (t0, 3, H, W) in [-1, 1] → tokens (t0, h, w)."""
+        if tuple(frames.shape[-2:]) != self.image_size or frames.ndim != 4:
+            raise ValueError(f"context frames: expected (t0, 3, {self.image_size[0]}, {self.image_size[1]}), "
+                             f"got {tuple(frames.shape)}")
+        return self.tokenizer.encode(frames.to(self.device))
+
+    def encode_text(self, captions: Captions | None, futures: int) -> torch.Tensor | None:
+        """t captions → (k, t, m, e) text features (the same for every future), or None."""
+        if captions is None:
+            return None
+        if self.text_encoder is None:
+            raise ValueError("a text prompt was given but this world model was trained without a text encoder")
+        return self.text_encoder([list(captions)] * futures).to(self.device)
+
+    @torch.no_grad()
+    def sample_tokens(self, context: torch.Tensor, frames: int, conditioning: Conditioning, num_futures: int,
+                      generator: torch.Generator | None = None) -> tuple[torch.Tensor, Conditions]:
+        """context (t0, h, w) → tokens (k, t0 + f, h, w) and the conditions they were sampled with."""
+        steps = context.shape[0] + frames
+        conditioning.check(steps)
+        text = self.encode_text(conditioning.captions, 1)
+        negative = self.encode_text(conditioning.negative, 1)
+        actions = None if conditioning.actions is None else conditioning.actions[None].float().to(self.device)
+        flat = rearrange(context, "t h w -> 1 t (h w)").to(self.device)
+        out = self.rollouts(flat, frames, text, actions, negative, num_futures, generator)
+        cond = self.rollouts.conditions(out.tokens.shape[0], steps, *(
+            None if x is None else x.repeat_interleave(num_futures, 0) for x in (text, actions)))
+        h, w = self.token_grid
+        return rearrange(out.tokens, "k t (h w) -> k t h w", h=h, w=w), cond
+
+    @torch.no_grad()
+    def frame_log_perplexity(self, tokens: torch.Tensor, cond: Conditions, context_frames: int) -> torch.Tensor:
+        """(k, t) mean nats/token of each generated frame given its window (NaN for context frames)."""
+        flat = rearrange(tokens, "k t h w -> k t (h w)")
+        out = torch.full(flat.shape[:2], math.nan)
+        for t in range(context_frames, flat.shape[1]):
+            context, window = fit_window(self.world_model, flat[:, :t], cond.steps(0, t + 1))
+            out[:, t] = token_log_perplexity(self.world_model, context, flat[:, t], window).mean(-1).cpu()
+        return out
+
+    @torch.no_grad()
+    def render(self, tokens: torch.Tensor, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """tokens (k, t, h, w) → frames at the world model's rate (k, t, 3, H, W) and the output video."""
+        if self.decoder is None:
+            frames = _renderer(self.tokenizer)(tokens).cpu()
+            return frames, frames
+        video = self.decoder(tokens, self.upsample, generator)
+        out = {0: video.base, 1: video.double, 2: video.quadruple}[self.upsample]
+        return video.base.cpu(), out.cpu()
+
+    def __call__(self, context: torch.Tensor | None, frames: int, conditioning: Conditioning | None = None,
+                 num_futures: int = 1, generator: torch.Generator | None = None) -> Gaia1Rollout:
+        """context: (t0, 3, H, W) in [-1, 1] or None (generation from nothing) → `num_futures` futures of `frames`."""
+        if frames < 1 or num_futures < 1:
+            raise ValueError(f"frames ({frames}) and num_futures ({num_futures}) must be ≥ 1")
+        h, w = self.token_grid
+        tokens = self.encode(context) if context is not None else torch.zeros(0, h, w, dtype=torch.long)
+        tokens, cond = self.sample_tokens(tokens, frames, conditioning or Conditioning(), num_futures, generator)
+        t0 = tokens.shape[1] - frames
+        log_ppl = self.frame_log_perplexity(tokens, cond, t0)
+        base, video = self.render(tokens, generator)
+        return Gaia1Rollout(tokens.cpu(), base, video, self.fps, log_ppl, t0)
+
+
+def _renderer(tokenizer: ImageTokenizer) -> Callable[[torch.Tensor], torch.Tensor]:
+    """tokens (b, t, h, w) → the tokenizer's frame-by-frame decoding (b, t, 3, H, W) in [-1, 1]."""
+
+    @torch.no_grad()
+    def render(tokens: torch.Tensor) -> torch.Tensor:
+        frames = tokenizer.decode(rearrange(tokens, "b t h w -> (b t) h w")).clamp(-1, 1)
+        return rearrange(frames, "(b t) c h w -> b t c h w", b=tokens.shape[0])
+
+    return render

@@ -1,0 +1,174 @@
+"""generate.py GAIA-1 rollouts end to end on tiny checkpoints made here: every mode, 2 futures, 1 s.
+
+The chain is the real one (GAIA-1 Fig. 1): tokenizer → token cache → world model → video decoder → rollouts;
+each component trains for a step or two, so the futures are noise, but every file, frame count and
+recording entry is what a trained run writes.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rerun.chunk import RrdReader
+
+from gaia_app.data.clip import ClipError
+from gaia_app.data.synthetic import SyntheticClipDataset
+from gaia_app.data.synthetic.export import export
+from gaia_app.data.video_io import video_info
+from gaia_app.tasks.generate import generate
+from gaia_app.tasks.train import train
+from tests.conftest import compose_config
+
+QUIET = ["extras.print_config=false", "logger=none", "callbacks=model_checkpoint"]
+# 32×48 images → 8×12 = 96 tokens per frame at D = 4: a quarter of the tiny preset's sampling work
+SIZE = ["data.height=32", "data.width=48"]
+WM_NET = ["model.net.dim=32", "model.net.depth=1", "model.net.heads=2", "model.net.kv_heads=1"]
+DECODER_NET = ["model.net.channels=8", "model.net.channel_mults=[1,2]", "model.net.attention_levels=[1]",
+               "model.net.token_dim=8", "model.net.heads=2", "model.net.vocab_size=512",
+               "model.net.token_grid=[8,12]", "model.net.image_size=[32,48]"]
+# 1 s at 6.25 Hz = 7 generated frames after 2 context frames: 9 frames → 4·9 − 3 = 33 at 25 Hz
+FUTURE, CONTEXT, VIDEO_FRAMES = 7, 2, 33
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("gaia1")
+    train(compose_config("train", ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "trainer.max_steps=1",
+                                   "data=synthetic_frames_tiny", *SIZE, *QUIET], root / "tokenizer"))
+    tokenizer = root / "tokenizer" / "checkpoints" / "last.ckpt"
+    generate(compose_config("generate", ["mode=tokenize", "data=synthetic_tiny", f"ckpt={tokenizer}",
+                                         f"out_dir={root / 'tokens'}", "extras.print_config=false", *SIZE], root / "tokenize"))
+    train(compose_config("train", ["experiment=gaia1/world_model_tiny", "trainer=tiny", "trainer.max_steps=2",
+                                   "trainer.limit_val_batches=0", f"data.path={root / 'tokens' / 'train'}",
+                                   "data.frame_stride=1", "model.net.image_tokens=96", *WM_NET, *QUIET], root / "world_model"))
+    train(compose_config("train", ["experiment=gaia1/video_decoder_tiny", "trainer=tiny", "trainer.max_steps=1",
+                                   "trainer.limit_val_batches=0", f"model.tokenizer_ckpt={tokenizer}",
+                                   "data.source.num_clips=2", "data.val_source.num_clips=1", *SIZE, *DECODER_NET, *QUIET],
+                         root / "decoder"))
+    return {"tokenizer_ckpt": tokenizer, "world_model_ckpt": root / "world_model" / "checkpoints" / "last.ckpt",
+            "decoder_ckpt": root / "decoder" / "checkpoints" / "last.ckpt"}
+
+
+def run(checkpoints: dict[str, Path], run_dir: Path, *overrides: str, decoder: bool = True) -> dict:
+    ckpts = [f"{k}={v}" for k, v in checkpoints.items() if decoder or k != "decoder_ckpt"]
+    cfg = compose_config("generate", [*ckpts, "decoder_steps=1", "num_futures=2", "seconds=1.0",
+                                      "extras.print_config=false", *SIZE, *overrides], run_dir)
+    return generate(cfg)["results"]
+
+
+MODES = {
+    "video": [],
+    "action": ["speed=accelerate", "curvature=left"],
+    "text": ["prompt='It is night. It is raining.'"],
+    "text_action": ["prompt='It is day.'", "speed=[5,5,6,6,7,7,8]", "curvature=0.01"],
+    "text_only": ["prompt='It is snowing.'"],
+    "unconditional": [],
+}
+
+
+@pytest.mark.parametrize("mode", sorted(MODES))
+def test_every_mode_writes_futures_grid_tokens_and_recording(checkpoints, tmp_path: Path, mode: str) -> None:
+    results = run(checkpoints, tmp_path, f"mode={mode}", *MODES[mode])
+    context = 0 if mode in ("text_only", "unconditional") else CONTEXT
+    steps = context + FUTURE
+    assert results["generated_frames"] == FUTURE and results["context_frames"] == context
+    assert results["video_frames"] == 4 * steps - 3 and results["fps"] == 25.0
+    for k in range(2):
+        info = video_info(tmp_path / f"future_{k}.mp4")
+        assert info.num_frames == 4 * steps - 3 and (info.height, info.width) == (32, 48)
+    grid = video_info(tmp_path / "grid.mp4")
+    assert grid.num_frames == 4 * steps - 3 and grid.width > 3 * 48  # real clip + 2 futures side by side
+    tokens = np.load(tmp_path / "tokens.npy")
+    assert tokens.shape == (2, steps, 8, 12) and tokens.min() >= 0 and tokens.max() < 512
+    conditioning = json.loads((tmp_path / "conditioning.json").read_text())
+    assert conditioning["mode"] == mode
+    assert not list(tmp_path.glob(".rollout-*"))
+    assert_recording(tmp_path / "rollout.rrd", mode, steps, context)
+
+
+def assert_recording(path: Path, mode: str, steps: int, context: int) -> None:
+    """The recording holds the real clip (with context), both futures' video and tokens, perplexity, and the
+    actions or prompts the mode used, on the `frame` timeline."""
+    rows: dict[str, int] = {}
+    for chunk in RrdReader(str(path)).stream().collect().stream().to_chunks():
+        if not chunk.is_static:
+            rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+    expected = {"/future_0/video", "/future_1/video", "/future_0/tokens", "/future_1/perplexity", "/phase"}
+    expected |= {"/real"} if context else set()
+    expected |= {"/actions/speed", "/actions/curvature"} if "action" in mode else set()
+    expected |= {"/prompt"} if "text" in mode else set()
+    assert expected <= set(rows), expected - set(rows)
+    assert rows["/future_1/video"] == 4 * steps - 3 and rows["/future_0/tokens"] == steps
+    assert rows["/future_0/perplexity"] == steps - context and rows.get("/real", 4 * steps - 3) == 4 * steps - 3
+
+
+def test_action_presets_and_explicit_values_reach_the_conditioning(checkpoints, tmp_path: Path) -> None:
+    run(checkpoints, tmp_path / "brake", "mode=action", "speed=brake", "curvature=strong_right", decoder=False)
+    brake = json.loads((tmp_path / "brake" / "conditioning.json").read_text())
+    commanded = np.array(brake["commanded_actions"])
+    assert commanded.shape == (FUTURE, 2) and np.all(np.diff(commanded[:, 0]) <= 0) and np.allclose(commanded[:, 1], -0.05)
+    assert len(brake["actions"]) == CONTEXT + FUTURE
+    speeds = "[1,2,3,4,5,6,7]"
+    run(checkpoints, tmp_path / "list", "mode=action", f"speed={speeds}", decoder=False)
+    listed = json.loads((tmp_path / "list" / "conditioning.json").read_text())
+    assert [row[0] for row in listed["commanded_actions"]] == [1, 2, 3, 4, 5, 6, 7]
+
+
+def test_without_a_decoder_frames_come_at_the_world_model_rate(checkpoints, tmp_path: Path) -> None:
+    results = run(checkpoints, tmp_path, "mode=video", decoder=False)
+    assert results["fps"] == 6.25 and results["video_frames"] == CONTEXT + FUTURE
+    assert video_info(tmp_path / "future_0.mp4").num_frames == CONTEXT + FUTURE
+
+
+def test_guidance_schedule_and_negative_prompt_are_recorded(checkpoints, tmp_path: Path) -> None:
+    results = run(checkpoints, tmp_path, "mode=text", "prompt='It is night.'", "negative_prompt='It is day.'",
+                  "guidance=scheduled", "guidance.scale=2.0", "num_futures=3", decoder=False)
+    assert np.load(tmp_path / "tokens.npy").shape[0] == 3 and results["futures"] == 3
+    scales = json.loads((tmp_path / "conditioning.json").read_text())["guidance"]["per_frame_mean_scale"]
+    assert len(scales) == FUTURE and scales[0] == pytest.approx(1.0) and scales[-1] == pytest.approx(0.0)
+    assert scales == sorted(scales, reverse=True)
+
+
+def test_long_rollouts_slide_past_the_context_window(checkpoints, tmp_path: Path) -> None:
+    # the tiny world model's window is 4 steps; 2 s = 13 generated frames slide it 11 times
+    results = run(checkpoints, tmp_path, "mode=video", "seconds=2.0", "num_futures=1", decoder=False)
+    assert results["generated_frames"] == 13
+    assert np.load(tmp_path / "tokens.npy").shape == (1, CONTEXT + 13, 8, 12)
+
+
+@pytest.mark.parametrize(("overrides", "error", "match"), [
+    (["mode=fly"], ValueError, "mode=fly: expected one of"),
+    (["mode=action"], ValueError, "needs speed= and/or curvature="),
+    (["mode=action", "speed=[1,2]"], ValueError, "2 values for 7 future steps"),
+    (["mode=action", "curvature=hard_left"], ValueError, "curvature='hard_left': expected one of"),
+    (["mode=text"], ValueError, "needs a prompt"),
+    (["mode=video", "prompt=hello"], ValueError, "takes no prompt"),
+    (["mode=text", "prompt=x", "negative_prompt=y"], ValueError, "set guidance.scale > 0"),
+])
+def test_bad_input_fails_clearly_and_leaves_no_outputs(checkpoints, tmp_path: Path, overrides, error, match) -> None:
+    with pytest.raises(error, match=match):
+        run(checkpoints, tmp_path, *overrides, decoder=False)
+    assert_no_outputs(tmp_path)
+
+
+def assert_no_outputs(run_dir: Path) -> None:
+    """Only the run's config and log: no video, token, recording or staging file."""
+    assert not [p.name for p in run_dir.iterdir() if p.name not in (".hydra", "config_resolved.yaml", "generate.log")]
+
+
+def test_a_context_clip_shorter_than_needed_is_named(checkpoints, tmp_path: Path) -> None:
+    # 8 frames at 25 Hz = 0.28 s: 2 frames at 6.25 Hz, one short of the 3 context frames asked for
+    export(tmp_path / "clips", SyntheticClipDataset(num_clips=1, seed=3, height=32, width=48, clip_len=8), progress=False)
+    with pytest.raises(ClipError, match=r"context clip 'synthetic-s3-000000' has 2 frames at 6.25 Hz .* needs 3 context"):
+        run(checkpoints, tmp_path / "run", "mode=video", "context.source=folder", f"context.folder={tmp_path / 'clips'}",
+            "context.frames=3", decoder=False)
+    assert_no_outputs(tmp_path / "run")
+
+
+def test_a_checkpoint_of_the_wrong_component_is_named(checkpoints, tmp_path: Path) -> None:
+    wrong = {**checkpoints, "world_model_ckpt": checkpoints["decoder_ckpt"]}
+    with pytest.raises(TypeError, match="world_model_ckpt=.*holds a VideoDecoderModule checkpoint, expected a WorldModelModule"):
+        run(wrong, tmp_path, "mode=video")
