@@ -172,3 +172,20 @@ def test_a_checkpoint_of_the_wrong_component_is_named(checkpoints, tmp_path: Pat
     wrong = {**checkpoints, "world_model_ckpt": checkpoints["decoder_ckpt"]}
     with pytest.raises(TypeError, match="world_model_ckpt=.*holds a VideoDecoderModule checkpoint, expected a WorldModelModule"):
         run(wrong, tmp_path, "mode=video")
+
+
+def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_path: Path) -> None:
+    results = run(checkpoints, tmp_path, "mode=controllability", "seconds=0.5", "controllability.probe_clips=4",
+                  "controllability.probe_steps=3", "controllability.contexts=2", "controllability.commands=[[brake,left]]",
+                  "controllability.prompts.time_of_day=[night]", "~controllability.prompts.weather", "controllability.text_repeats=2",
+                  "controllability.real_clips=4", decoder=False)
+    rows = results["actions"]["rows"]
+    assert set(rows) == {"ceiling (real, re-simulated)", "model (action-conditioned)", "floor (actions dropped)"}
+    assert all(np.isfinite(list(row.values())).all() for row in rows.values())
+    text = results["text"]
+    assert text["targets"] == ["time_of_day=night"] and set(text["rows"]) == {
+        "ceiling (real frames)", "model (text-prompted)", "floor (no text)"}
+    assert 0 <= text["rows"]["model (text-prompted)"]["time_of_day=night"] <= 1
+    table = (tmp_path / "controllability.md").read_text()
+    assert "| model (action-conditioned) |" in table and "| chance | 0.33 |" in table
+    assert json.loads((tmp_path / "controllability.json").read_text())["actions"]["contexts"] == 2

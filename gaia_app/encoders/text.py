@@ -25,14 +25,19 @@ from torch import nn
 
 DEFAULT_WORDS = ("left", "right", "straight", "turn", "stop", "slow", "fast", "accelerate", "brake", "car", "bus",
                  "truck", "bike", "pedestrian", "road", "lane", "junction", "traffic", "light", "red", "green",
-                 "rain", "sun", "night", "day", "snow", "fog", "urban", "rural", "highway", "parked", "ahead")
+                 "rain", "sun", "night", "day", "snow", "fog", "urban", "rural", "highway", "parked", "ahead",
+                 "dusk", "clear", "amber", "crossing", "city", "suburb")
 
 
 class LearnedTextEncoder(nn.Module):
-    """Words of a fixed vocabulary → trainable embeddings; index 0 pads, 1 is any unknown word.
+    """Keywords of a fixed vocabulary → trainable embeddings; index 0 pads, 1 marks a caption with no keyword.
+
+    A word counts as the longest vocabulary word it starts with ("snowing" → snow, "daytime" → day,
+    "turning" → turn); other words are skipped, so the m slots hold the caption's first m keywords rather
+    than its first m words ("It is night. It is snowing." → night, snow).
 
     Args:
-        dim: e. tokens: m, words kept per caption (padded or truncated). words: the vocabulary.
+        dim: e. tokens: m, keywords kept per caption (padded or truncated). words: the vocabulary.
     """
 
     def __init__(self, dim: int = 64, tokens: int = 4, words: Sequence[str] = DEFAULT_WORDS):
@@ -41,10 +46,19 @@ class LearnedTextEncoder(nn.Module):
         self.index = {w: i + 2 for i, w in enumerate(words)}
         self.embedding = nn.Embedding(len(words) + 2, dim, padding_idx=0)
 
+    def keyword(self, word: str) -> int | None:
+        """Id of the longest vocabulary word (≥ 3 letters) that `word` starts with, or None."""
+        for length in range(len(word), 2, -1):
+            if word[:length] in self.index:
+                return self.index[word[:length]]
+        return None
+
     def ids(self, caption: str | None) -> list[int]:
-        """m word ids of one caption (None: all padding)."""
-        words = re.findall(r"[a-z]+", (caption or "").lower())[: self.tokens]
-        ids = [self.index.get(w, 1) for w in words]
+        """m keyword ids of one caption (None: all padding; text without keywords: [1, 0, …])."""
+        words = re.findall(r"[a-z]+", (caption or "").lower())
+        ids = [i for i in map(self.keyword, words) if i is not None][: self.tokens]
+        if words and not ids:
+            ids = [1]
         return ids + [0] * (self.tokens - len(ids))
 
     def forward(self, captions: Sequence[Sequence[str | None]]) -> torch.Tensor:

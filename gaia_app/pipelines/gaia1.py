@@ -160,22 +160,33 @@ class Gaia1Pipeline:
 
     def encode_text(self, captions: Captions | None, futures: int) -> torch.Tensor | None:
         """t captions → (k, t, m, e) text features (the same for every future), or None."""
-        if captions is None:
-            return None
+        return None if captions is None else self.encode_text_batch([captions] * futures)
+
+    def encode_text_batch(self, captions: Sequence[Captions]) -> torch.Tensor:
+        """b lists of t captions → (b, t, m, e) text features."""
         if self.text_encoder is None:
             raise ValueError("a text prompt was given but this world model was trained without a text encoder")
-        return self.text_encoder([list(captions)] * futures).to(self.device)
+        return self.text_encoder([list(c) for c in captions]).to(self.device)
 
     @torch.no_grad()
     def sample_tokens(self, context: torch.Tensor, frames: int, conditioning: Conditioning, num_futures: int,
                       generator: torch.Generator | None = None) -> tuple[torch.Tensor, Conditions]:
         """context (t0, h, w) → tokens (k, t0 + f, h, w) and the conditions they were sampled with."""
-        steps = context.shape[0] + frames
-        conditioning.check(steps)
+        conditioning.check(context.shape[0] + frames)
         text = self.encode_text(conditioning.captions, 1)
         negative = self.encode_text(conditioning.negative, 1)
-        actions = None if conditioning.actions is None else conditioning.actions[None].float().to(self.device)
-        flat = rearrange(context, "t h w -> 1 t (h w)").to(self.device)
+        actions = None if conditioning.actions is None else conditioning.actions[None]
+        return self.sample_batch(context[None], frames, text, actions, negative, num_futures, generator)
+
+    @torch.no_grad()
+    def sample_batch(self, context: torch.Tensor, frames: int, text: torch.Tensor | None = None,
+                     actions: torch.Tensor | None = None, negative: torch.Tensor | None = None, num_futures: int = 1,
+                     generator: torch.Generator | None = None) -> tuple[torch.Tensor, Conditions]:
+        """b contexts at once: tokens (b, t0, h, w); text, negative (b, t, m, e) encoded; actions (b, t, 2)
+        → tokens (b·k, t, h, w), each context's futures adjacent, and their conditions."""
+        steps = context.shape[1] + frames
+        actions = None if actions is None else actions.float().to(self.device)
+        flat = rearrange(context, "b t h w -> b t (h w)").to(self.device)
         out = self.rollouts(flat, frames, text, actions, negative, num_futures, generator)
         cond = self.rollouts.conditions(out.tokens.shape[0], steps, *(
             None if x is None else x.repeat_interleave(num_futures, 0) for x in (text, actions)))

@@ -54,4 +54,7 @@ def test_text_captions_reach_the_conditioner() -> None:
     without = module.conditions({"tokens": tokens})
     assert with_text.text.shape == (2, 2, 3, 32)
     assert not torch.allclose(with_text.text, without.text)
-    assert LearnedTextEncoder(tokens=3).ids("Turn LEFT at the junction") == [5, 2, 1]
+    encoder = LearnedTextEncoder(tokens=3)
+    assert encoder.ids("Turn LEFT at the junction") == [5, 2, 18]  # "at", "the" are skipped
+    assert encoder.ids("It is night. It is snowing. Turning left.") == [25, 27, 5]  # prefixes: snow, turn
+    assert encoder.ids("Hello there") == [1, 0, 0] and encoder.ids(None) == [0, 0, 0]
