@@ -28,8 +28,8 @@ install-dev: $(VENV)/.installed-dev
 
 # The main job, GAIA-1 end to end on the built-in synthetic world (docs/generate.md): train the tiny
 # tokenizer, tokenize clips at 6.25 Hz, train the world model and the video decoder, then generate an
-# action-conditioned and a text-conditioned rollout, and score action / text adherence with probes
-# (frame-by-frame decoding there, for speed). Every step reuses what an earlier run finished
+# action-conditioned rollout (through the video decoder, 25 Hz) and a text-conditioned one (frames decoded
+# one by one by the tokenizer, 6.25 Hz), and score action / text adherence with probes. Every step reuses what an earlier run finished
 # (ckpt_path=last resumes or skips a training run; tokenize skips clips already on disk).
 DEMO_CKPTS := tokenizer_ckpt=$(DEMO_DIR)/tokenizer/checkpoints/last.ckpt \
 	world_model_ckpt=$(DEMO_DIR)/world_model/checkpoints/last.ckpt \
@@ -37,14 +37,14 @@ DEMO_CKPTS := tokenizer_ckpt=$(DEMO_DIR)/tokenizer/checkpoints/last.ckpt \
 demo: install
 	$(PY) train.py experiment=gaia1/demo/tokenizer hydra.run.dir=$(DEMO_DIR)/tokenizer ckpt_path=last
 	$(PY) generate.py mode=tokenize ckpt=$(DEMO_DIR)/tokenizer/checkpoints/last.ckpt data=synthetic \
-		data.source.clip_len=32 fps=6.25 max_clips=128 out_dir=$(DEMO_DIR)/tokens hydra.run.dir=$(DEMO_DIR)/tokenize
+		data.source.clip_len=32 fps=6.25 max_clips=96 out_dir=$(DEMO_DIR)/tokens hydra.run.dir=$(DEMO_DIR)/tokenize
 	$(PY) train.py experiment=gaia1/demo/world_model hydra.run.dir=$(DEMO_DIR)/world_model ckpt_path=last \
 		data.path=$(DEMO_DIR)/tokens/train
 	$(PY) train.py experiment=gaia1/demo/video_decoder hydra.run.dir=$(DEMO_DIR)/video_decoder ckpt_path=last \
 		model.tokenizer_ckpt=$(DEMO_DIR)/tokenizer/checkpoints/last.ckpt
-	$(PY) generate.py mode=action $(DEMO_CKPTS) speed=accelerate curvature=left decoder_steps=10 \
+	$(PY) generate.py mode=action $(DEMO_CKPTS) speed=accelerate curvature=left decoder_steps=4 \
 		hydra.run.dir=$(DEMO_DIR)/rollout_action
-	$(PY) generate.py mode=text $(DEMO_CKPTS) 'prompt="It is night. It is raining."' decoder_steps=10 \
+	$(PY) generate.py mode=text $(DEMO_CKPTS) decoder_ckpt=null 'prompt="It is night. It is raining."' \
 		hydra.run.dir=$(DEMO_DIR)/rollout_text
 	$(PY) generate.py mode=controllability $(DEMO_CKPTS) decoder_ckpt=null hydra.run.dir=$(DEMO_DIR)/controllability
 	@echo "demo outputs: $(DEMO_DIR)/rollout_{action,text}/{grid,future_0,future_1}.mp4 (real clip | futures)"

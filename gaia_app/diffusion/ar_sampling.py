@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from tqdm.auto import tqdm
 
 from gaia_app.diffusion.guidance import ClassifierFreeGuidance
 from gaia_app.models.gaia1.world_model import Conditions, WorldModel
@@ -73,11 +74,13 @@ class AutoregressiveSampler:
     Args:
         picker: how each token is chosen from the (guided) logits.
         use_cache: KV-cached incremental decoding (True) or full recompute at every token.
+        progress: a progress bar over generated frames.
     """
 
-    def __init__(self, picker: TokenPicker | None = None, use_cache: bool = True):
+    def __init__(self, picker: TokenPicker | None = None, use_cache: bool = True, progress: bool = False):
         self.picker = picker or TokenPicker()
         self.use_cache = use_cache
+        self.progress = progress
 
     @torch.no_grad()
     def __call__(self, net: WorldModel, context: torch.Tensor, cond: Conditions, uncond: Conditions | None = None,
@@ -97,7 +100,7 @@ class AutoregressiveSampler:
         streams = cond if uncond is None else cond.cat(uncond)
         scales = guidance.scales(frames, n) if guidance is not None else None
         stream, window = None, -1
-        for k in range(frames):
+        for k in tqdm(range(frames), desc="world model", unit="frame", disable=not self.progress):
             t = t0 + k
             start = max(0, t - (net.frames - 1))  # sliding window beyond T steps
             if start != window:
