@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from rerun.chunk import RrdReader
@@ -20,6 +21,8 @@ from gaia_app.data.synthetic.export import export
 from gaia_app.data.video_io import video_info
 from gaia_app.tasks.generate import generate
 from gaia_app.tasks.train import train
+from gaia_app.viz.gallery import make_gallery
+from gaia_app.viz.screenshot import ViewerUnavailable, screenshot_recording
 from tests.conftest import compose_config
 
 QUIET = ["extras.print_config=false", "logger=none", "callbacks=model_checkpoint"]
@@ -189,3 +192,21 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
     table = (tmp_path / "controllability.md").read_text()
     assert "| model (action-conditioned) |" in table and "| chance | 0.33 |" in table
     assert json.loads((tmp_path / "controllability.json").read_text())["actions"]["contexts"] == 2
+
+
+def test_gallery_strips_and_headless_viewer_screenshot(checkpoints, tmp_path: Path) -> None:
+    demo = tmp_path / "demo"
+    run(checkpoints, demo / "rollout_action", "mode=action", "speed=accelerate", "curvature=left")
+    run(checkpoints, demo / "rollout_text", "mode=text", "prompt='It is night.'", decoder=False)
+    written = make_gallery(demo, tmp_path / "gallery")
+    strip = cv2.imread(str(tmp_path / "gallery" / "rollout_action.png"))
+    assert strip.shape[0] == 3 * 2 * 32 and strip.shape[1] > 2 * 3 * 48  # 3 rows at 2×, real + 2 futures wide
+    assert cv2.imread(str(tmp_path / "gallery" / "rollout_text.png")) is not None
+    if tmp_path / "gallery" / "rerun_rollout.png" not in written:
+        with pytest.raises(ViewerUnavailable) as why:
+            screenshot_recording(demo / "rollout_action" / "rollout.rrd", tmp_path / "shot.png")
+        pytest.skip(f"headless Rerun viewer unavailable here: {why.value}")
+    shot = cv2.imread(str(tmp_path / "gallery" / "rerun_rollout.png"))
+    assert max(shot.shape[:2]) == 1280
+    # the rollout's views are painted, not an empty viewer: its video and token views are full of colour
+    assert shot.std() > 20 and len(np.unique(shot.reshape(-1, 3), axis=0)) > 1000

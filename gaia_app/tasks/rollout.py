@@ -29,6 +29,7 @@ from gaia_app.data.video_io import write_video
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline, Gaia1Rollout
 from gaia_app.pipelines.gaia1_inputs import MODES, ContextClip, build_conditioning, context_for, describe_actions
 from gaia_app.utils.run_dir import atomic_write_text
+from gaia_app.viz.blueprints import rollout_blueprint
 from gaia_app.viz.media import log_token_map, to_hwc_uint8, video_grid
 
 CONTEXT_COLOUR, FUTURE_COLOUR = (40, 200, 80), (230, 60, 40)  # top stripe: context frame / generated frame
@@ -104,6 +105,8 @@ def log_rollout(path: Path, rollout: Gaia1Rollout, context: ContextClip | None, 
     guidance scale and per-frame perplexity at the world model's steps."""
     rec = rr.RecordingStream("gaia_app", recording_id=f"rollout-{path.parent.name}")
     rec.save(str(path))
+    rec.send_blueprint(rollout_blueprint(rollout.video.shape[0], context is not None,
+                                         conditions.get("actions") is not None, guidance_scales is not None))
     step = 2**upsample
     real = real_cell(context, rollout.video.shape[1], rollout.fps, to_uint8(rollout.video[0]).numpy())
     for i in range(rollout.video.shape[1]):

@@ -77,3 +77,24 @@ def rig_blueprint(
         ),
         collapse_panels=True,
     )
+
+
+def rollout_blueprint(num_futures: int, has_real: bool, has_actions: bool, has_guidance: bool) -> rrb.Blueprint:
+    """A `generate.py` rollout (entity paths of gaia_app/tasks/rollout.py): the real clip and every future side
+    by side, their token maps below, then perplexity, commanded actions, guidance scale and the prompt/phase log.
+    """
+    videos = ([rrb.Spatial2DView(origin="/real", name="real")] if has_real else []) + [
+        rrb.Spatial2DView(origin=f"/future_{k}/video", name=f"future {k}") for k in range(num_futures)]
+    tokens = [rrb.Spatial2DView(origin=f"/future_{k}/tokens", name=f"tokens {k}") for k in range(num_futures)]
+    series: list[rrb.View] = [rrb.TimeSeriesView(
+        origin="/", contents=[f"/future_{k}/perplexity" for k in range(num_futures)], name="perplexity")]
+    if has_actions:
+        series.append(rrb.TimeSeriesView(origin="/actions", name="actions"))
+    if has_guidance:
+        series.append(rrb.TimeSeriesView(origin="/guidance", name="guidance"))
+    series.append(rrb.TextLogView(origin="/", name="prompt / phase"))
+    return rrb.Blueprint(
+        rrb.Vertical(rrb.Horizontal(*videos), rrb.Horizontal(*tokens), rrb.Horizontal(*series),
+                     row_shares=[3, 2, 2]),
+        collapse_panels=True,
+    )

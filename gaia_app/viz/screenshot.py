@@ -1,0 +1,84 @@
+"""Screenshots of a Rerun recording in a headless viewer (for the README gallery and its test).
+
+The headless viewer needs a graphics adapter: on a machine without a GPU, Mesa's software Vulkan driver
+(Debian/Ubuntu package `mesa-vulkan-drivers`) is enough; with only OpenGL llvmpipe the viewer exits at start.
+"""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import sys
+import time
+from pathlib import Path
+
+from gaia_app.utils.run_dir import atomic_write_bytes
+
+
+class ViewerUnavailable(RuntimeError):
+    """The headless Rerun viewer could not start here (no executable, no graphics adapter)."""
+
+
+def viewer_executable() -> str:
+    """The `rerun` CLI of this environment (next to the interpreter), else the one on PATH."""
+    beside = Path(sys.executable).parent / "rerun"
+    found = str(beside) if beside.exists() else shutil.which("rerun")
+    if found is None:
+        raise ViewerUnavailable("no `rerun` executable next to the Python interpreter or on PATH "
+                                "(it comes with `pip install rerun-sdk`)")
+    return found
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _spawn_headless():
+    from rerun.experimental import ViewerClient  # experimental API: import where used
+
+    try:
+        return ViewerClient.spawn(headless=True, port=_free_port(), hide_welcome_screen=True,
+                                  executable_path=viewer_executable())
+    except (RuntimeError, TimeoutError, OSError) as err:
+        raise ViewerUnavailable(f"the headless Rerun viewer did not start ({err}); without a GPU it needs "
+                                "Mesa's software Vulkan driver: apt-get install mesa-vulkan-drivers") from err
+
+
+def screenshot_recording(rrd: str | Path, png: str | Path, frame: int | None = None, max_size: int = 1280,
+                         settle_s: float = 3.0) -> Path:
+    """Open `rrd` in a headless viewer with its own blueprint, pause at `frame` on the `frame` timeline (the
+    last frame when None), and write the viewer as a PNG (longest side `max_size` px) to `png`, atomically.
+
+    Chunks stream into the viewer on demand, so it waits `settle_s` after seeking before the capture.
+    Raises ViewerUnavailable when no headless viewer can run here, FileNotFoundError for a missing `rrd`.
+    """
+    rrd = Path(rrd)
+    if not rrd.is_file():
+        raise FileNotFoundError(f"no Rerun recording at {rrd}")
+    viewer = _spawn_headless()
+    try:
+        opened = viewer.open(str(rrd.resolve()))
+        if not opened.store_ids:
+            raise RuntimeError(f"the Rerun viewer opened no recording from {rrd}")
+        timeline = _frame_timeline(viewer, rrd)
+        viewer.set_time("frame", sequence=timeline.end if frame is None else frame, play_state="paused")
+        time.sleep(settle_s)
+        viewer.take_screenshot(max_size=max_size)  # the first paint fetches the chunks in view
+        time.sleep(settle_s)
+        atomic_write_bytes(png, viewer.take_screenshot(max_size=max_size))
+        return Path(png)
+    finally:
+        viewer.quit()
+
+
+def _frame_timeline(viewer, rrd: Path):
+    """The `frame` timeline of the active recording, or a clear error naming the file."""
+    state = viewer.get_state()
+    for recording in state.recordings:
+        if recording.store_id == state.active_recording:
+            for timeline in recording.timelines:
+                if timeline.name == "frame":
+                    return timeline
+    raise ValueError(f"{rrd} has no `frame` timeline (expected a generate.py rollout recording)")
