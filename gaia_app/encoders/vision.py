@@ -47,12 +47,22 @@ class VisionTeacher(FrozenImageNetwork):
     @torch.no_grad()
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         """image: (b, 3, H, W) in [-1, 1] → patch features (b, d, gh, gw)."""
+        return self.vit.patch_features(self._prepare(image))
+
+    @torch.no_grad()
+    def embed(self, image: torch.Tensor) -> torch.Tensor:
+        """image: (b, 3, H, W) in [-1, 1] → the class-token embedding (b, d), DINO's whole-image feature
+        (the one Fréchet DINO Distance compares, GAIA-2 §6)."""
+        return self.vit(self._prepare(image))[:, 0]
+
+    def _prepare(self, image: torch.Tensor) -> torch.Tensor:
+        """ImageNet-normalised and resized (bilinear) to the nearest multiple of the patch size."""
         p = self.vit.patch_size
         x = self.normalize(image)
         size = (max(p, round(x.shape[-2] / p) * p), max(p, round(x.shape[-1] / p) * p))
         if size != tuple(x.shape[-2:]):
             x = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
-        return self.vit.patch_features(x)
+        return x
 
 
 def distillation_loss(student: torch.Tensor, teacher: torch.Tensor) -> torch.Tensor:
