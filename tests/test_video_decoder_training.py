@@ -62,6 +62,9 @@ def test_validation_logs_every_task(decoder_run: Path) -> None:
     media = module.media(batch)
     assert media["val/decoder/decoded"].shape == (1, 7, 3, 64, 112)
     assert media["val/decoder/denoising_steps"].shape == (1, module.media_steps, 3, 64, 112)
+    real, generated = module.evaluation_pair(batch)  # what callbacks=[...,evaluation] scores
+    assert real.shape == generated.shape == (1, 7, 3, 64, 112)
+    torch.testing.assert_close(generated[:1], media["val/decoder/decoded"][:1])  # same seed, same decoding
 
 
 def tiny_pipeline(rendering: bool = False, **kw) -> VideoDecodingPipeline:

@@ -317,6 +317,11 @@ class ImageTokenizerModule(GaiaModule):
         self._val_tokens.clear()
 
     @torch.no_grad()
+    def evaluation_pair(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """(input images, reconstructions), both (b, 3, H, W), for gaia_app.lit.evaluation.EvaluationCallback."""
+        return batch["image"], self.tokenizer(batch["image"]).reconstruction.clamp(-1, 1)
+
+    @torch.no_grad()
     def media(self, batch: dict[str, torch.Tensor]) -> dict[str, Any]:
         """What the Rerun media callback shows: inputs, reconstructions, token maps (hash and PCA colours, GAIA-1 Fig. 3)."""
         image = batch["image"]

@@ -189,17 +189,31 @@ class VideoDecoderModule(GaiaModule):
     # ---- media --------------------------------------------------------------------------------------
 
     @torch.no_grad()
+    def decode_tokens(self, tokens: torch.Tensor, callback: Callable | None = None) -> torch.Tensor:
+        """Tokens (b, T′, h, w) → decoded window (b, T′, 3, H, W) with the EMA decoder, video task (every frame
+        from tokens), `media_steps` sampler steps, a fixed seed."""
+        ones = torch.ones(tokens.shape[:2], dtype=torch.bool, device=tokens.device)
+        shape = (*tokens.shape[:2], 3, *self.ema_decoder.image_size)
+        return sample_window(self.ema_decoder, self.schedule, self.sampler(self.media_steps), tokens, ones,
+                             torch.zeros(shape, device=tokens.device), ~ones,
+                             generator=torch.Generator(tokens.device).manual_seed(0), callback=callback,
+                             rendered=self.rendered(self.ema_decoder, tokens))
+
+    @torch.no_grad()
+    def evaluation_pair(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+        """(ground-truth window, its decoding from the tokenizer's tokens), both (b, T′, 3, H, W), for
+        gaia_app.lit.evaluation.EvaluationCallback (FVMD, FDD, PSNR/SSIM of the video decoder)."""
+        x0 = self.window(batch, step=max(self.frame_steps), offset=0)
+        return x0, self.decode_tokens(self.tokenize(x0))
+
+    @torch.no_grad()
     def media(self, batch: dict[str, Any]) -> dict[str, Any]:
         """Ground truth, decoded video (EMA, video task), the tokenizer's frame-by-frame decoding and the
         denoising steps of the first frame, for the Rerun media callback."""
         x0 = self.window(batch, step=max(self.frame_steps), offset=0)[:2]
         tokens = self.tokenize(x0)
         steps: list[torch.Tensor] = []
-        ones = torch.ones(tokens.shape[:2], dtype=torch.bool, device=tokens.device)
-        decoded = sample_window(self.ema_decoder, self.schedule, self.sampler(self.media_steps), tokens, ones,
-                                torch.zeros_like(x0), ~ones, generator=torch.Generator(x0.device).manual_seed(0),
-                                callback=lambda i, t, x, x0_pred: steps.append(x0_pred[0, 0].clamp(-1, 1)),
-                                rendered=self.rendered(self.ema_decoder, tokens))
+        decoded = self.decode_tokens(tokens, callback=lambda i, t, x, x0_pred: steps.append(x0_pred[0, 0].clamp(-1, 1)))
         framewise = self.render_tokens(tokens)
         return {
             "val/decoder/ground_truth": x0,
