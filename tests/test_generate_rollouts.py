@@ -210,3 +210,26 @@ def test_gallery_strips_and_headless_viewer_screenshot(checkpoints, tmp_path: Pa
     assert max(shot.shape[:2]) == 1280
     # the rollout's views are painted, not an empty viewer: its video and token views are full of colour
     assert shot.std() > 20 and len(np.unique(shot.reshape(-1, 3), axis=0)) > 1000
+
+
+def test_evaluate_mode_scores_model_ceiling_and_floor(checkpoints, tmp_path: Path) -> None:
+    results = run(checkpoints, tmp_path, "mode=evaluate", "evaluate.contexts=3", "seconds=0.5")
+    assert set(results["rows"]) == {"model (video rollouts)", "tokens (real continuation, tokenized and rendered)",
+                                    "held frame (last context frame repeated)"}
+    for row in results["rows"].values():
+        assert set(row) == {"psnr", "ssim", "fvmd"} and np.isfinite(list(row.values())).all()
+    assert results["generated_frames"] == 4 and results["contexts"] == 3
+    table = (tmp_path / "evaluation.md").read_text()
+    assert "| model (video rollouts) |" in table and "fvmd ↓" in table
+    assert json.loads((tmp_path / "evaluation.json").read_text())["rows"] == results["rows"]
+
+
+@pytest.mark.parametrize(("overrides", "match"), [
+    (["evaluate.metrics=[fid]"], r"evaluate.metrics=\['fid'\]: choose from"),
+    (["evaluate.metrics=[fdd]"], "set evaluate.fdd_checkpoint"),
+    (["evaluate.contexts=1"], "at least 2 clips per set"),
+])
+def test_evaluate_mode_bad_settings_fail_before_any_work(checkpoints, tmp_path: Path, overrides, match) -> None:
+    with pytest.raises(ValueError, match=match):
+        run(checkpoints, tmp_path, "mode=evaluate", *overrides)
+    assert_no_outputs(tmp_path)

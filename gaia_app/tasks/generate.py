@@ -2,7 +2,8 @@
 
 mode=reconstruct writes mp4s, tokens, metrics and a .rrd; mode=tokenize writes a token cache for the world model;
 the GAIA-1 rollout modes (video, action, text, text_action, text_only, unconditional) write futures
-(gaia_app/tasks/rollout.py).
+(gaia_app/tasks/rollout.py); mode=controllability scores action / text adherence (tasks/controllability.py) and
+mode=evaluate fidelity and motion against real continuations (tasks/evaluate.py).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from gaia_app.data.token_cache import segment_done, write_segment
 from gaia_app.pipelines.gaia1_tokenizer import (ReconstructionOutput, TokenCachePipeline, TokenizerReconstructionPipeline,
                                                 camera_names, segment_names)
 from gaia_app.tasks.controllability import controllability
+from gaia_app.tasks.evaluate import evaluate
 from gaia_app.tasks.rollout import ROLLOUT_MODES, rollout
 from gaia_app.utils.run_dir import atomic_write_text, save_resolved_config
 from gaia_app.viz.media import log_token_map, to_hwc_uint8
@@ -117,7 +119,7 @@ MODES = {"reconstruct": (ImageTokenizerModule, reconstruct), "tokenize": (ImageT
 def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """The single-checkpoint modes of `MODES` on `cfg.ckpt`."""
     if cfg.mode not in MODES:
-        raise ValueError(f"mode={cfg.mode}: expected one of {sorted(MODES) + list(ROLLOUT_MODES) + ['controllability']}")
+        raise ValueError(f"mode={cfg.mode}: expected one of {sorted(MODES) + list(ROLLOUT_MODES) + ['controllability', 'evaluate']}")
     if not cfg.ckpt:
         raise ValueError(f"mode={cfg.mode} needs ckpt=<checkpoint of a trained tokenizer>")
     module_type, run = MODES[cfg.mode]
@@ -136,6 +138,8 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
         results = rollout(cfg, run_dir)
     elif cfg.mode == "controllability":
         results = controllability(cfg, run_dir)
+    elif cfg.mode == "evaluate":
+        results = evaluate(cfg, run_dir)
     else:
         results = run_component(cfg, run_dir)
     atomic_write_text(run_dir / "results.json", json.dumps(results, indent=2))

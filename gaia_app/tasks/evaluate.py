@@ -1,0 +1,93 @@
+"""`generate.py mode=evaluate`: fidelity and motion of GAIA-1 rollouts against the real continuations.
+
+Fréchet distances compare sets, so this is a mode over `evaluate.contexts` clips of the synthetic world
+(`context.seed`) rather than a flag on a single rollout. Every context is continued for `seconds` (mode=video,
+no condition) and scored at the world model's rate against the clip's real continuation:
+
+    model       the world model's futures, rendered by the pipeline (video decoder, else frame by frame)
+    tokens      the real continuation tokenized and rendered the same way: the best a perfect world model
+                could score through this tokenizer and decoder (the ceiling)
+    held frame  the last context frame repeated: a future that never moves (a floor for motion)
+
+Metrics (`evaluate.metrics`, docs/evaluation.md): psnr / ssim per generated frame against the real one, fvmd
+between the sets of real and generated clips (last context frame + future), fdd over future frames (needs
+`evaluate.fdd_checkpoint`). Writes evaluation.json and the table evaluation.md into the run dir.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig
+
+from gaia_app.eval.controllability import probe_clips
+from gaia_app.eval.feature_distance import fdd
+from gaia_app.eval.fvmd import FVMD
+from gaia_app.eval.metrics import psnr, ssim
+from gaia_app.tasks.controllability import rollout_frames, world_clips
+from gaia_app.tasks.rollout import load_pipeline
+from gaia_app.utils.run_dir import atomic_write_text
+
+METRICS = ("psnr", "ssim", "fvmd", "fdd")
+
+
+def check_settings(cfg: DictConfig) -> None:
+    """Named errors before any work: unknown metrics, fdd without a checkpoint, too few contexts."""
+    e = cfg.evaluate
+    unknown = sorted(set(e.metrics) - set(METRICS))
+    if unknown or not e.metrics:
+        raise ValueError(f"evaluate.metrics={list(e.metrics)}: choose from {list(METRICS)}")
+    if "fdd" in e.metrics and not e.fdd_checkpoint:
+        raise ValueError("evaluate.metrics has fdd: set evaluate.fdd_checkpoint to a local DINO checkpoint")
+    if e.contexts < 2:
+        raise ValueError(f"evaluate.contexts={e.contexts}: Fréchet distances need at least 2 clips per set")
+
+
+def score(cfg: DictConfig, real: torch.Tensor, candidate: torch.Tensor, t0: int) -> dict[str, float]:
+    """Metrics of candidate futures against real ones; both (b, t0 + f, 3, H, W), scored from frame t0 − 1 on."""
+    e, out = cfg.evaluate, {}
+    real_future, future = real[:, t0:], candidate[:, t0:]
+    if "psnr" in e.metrics:
+        out["psnr"] = float(psnr(future.flatten(0, 1), real_future.flatten(0, 1)).mean())
+    if "ssim" in e.metrics:
+        out["ssim"] = float(ssim(future.flatten(0, 1), real_future.flatten(0, 1)).mean())
+    if "fvmd" in e.metrics:
+        out["fvmd"] = FVMD().update(real[:, t0 - 1:], real=True).update(candidate[:, t0 - 1:], real=False).compute()
+    if "fdd" in e.metrics:
+        metric = fdd(e.fdd_checkpoint, e.fdd_kind, "evaluate.fdd_checkpoint")
+        out["fdd"] = metric.update(real_future, real=True).update(future, real=False).compute()
+    return out
+
+
+def markdown(results: dict[str, Any]) -> str:
+    names = list(next(iter(results["rows"].values())))
+    arrows = {"psnr": "↑", "ssim": "↑", "fvmd": "↓", "fdd": "↓"}
+    lines = ["| rollouts vs real continuations | " + " | ".join(f"{n} {arrows[n]}" for n in names) + " |",
+             "|---" * (len(names) + 1) + "|"]
+    lines += [f"| {row} | " + " | ".join(f"{values[n]:.3f}" for n in names) + " |" for row, values in results["rows"].items()]
+    return "\n".join(lines) + "\n"
+
+
+def evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """Run the protocol of the module docstring; returns the results (also written to the run dir)."""
+    check_settings(cfg)
+    pipeline = load_pipeline(cfg)
+    rate, (height, width), n = pipeline.rate, pipeline.image_size, cfg.evaluate.contexts
+    t0, frames = cfg.context.frames, max(2, math.ceil(cfg.seconds * rate))
+    real = probe_clips(world_clips(cfg.context.seed, n, height, width, t0 + frames, rate), rate, t0 + frames).frames
+    generator = torch.Generator(device=pipeline.device).manual_seed(int(cfg.seed))
+    model = rollout_frames(pipeline, real[:, :t0], frames, n, None, None, generator)
+    tokens = torch.stack([pipeline.encode(clip) for clip in real])
+    reconstructed = pipeline.render(tokens, generator)[0]
+    held = torch.cat([real[:, :t0], real[:, t0 - 1 : t0].expand(-1, frames, -1, -1, -1)], dim=1)
+    rows = {"model (video rollouts)": score(cfg, real, model, t0),
+            "tokens (real continuation, tokenized and rendered)": score(cfg, real, reconstructed, t0),
+            "held frame (last context frame repeated)": score(cfg, real, held, t0)}
+    results = {"contexts": n, "context_frames": t0, "generated_frames": frames, "rate": rate, "rows": rows}
+    atomic_write_text(run_dir / "evaluation.json", json.dumps(results, indent=2))
+    atomic_write_text(run_dir / "evaluation.md", markdown(results))
+    return results
