@@ -18,11 +18,12 @@ import lightning.pytorch as pl
 import torch
 import torch.distributed as dist
 
+from gaia_app.encoders.perceptual import load_perceptual
 from gaia_app.eval.feature_distance import fdd
 from gaia_app.eval.fvmd import FVMD
 from gaia_app.eval.metrics import psnr, ssim
 
-METRICS = ("psnr", "ssim", "fvmd", "fdd")
+METRICS = ("psnr", "ssim", "lpips", "fvmd", "fdd")
 
 
 class _Mean:
@@ -44,13 +45,16 @@ class _Mean:
 
 
 class EvaluationCallback(pl.Callback):
-    """Compute `metrics` (subset of psnr, ssim, fvmd, fdd) from `pl_module.evaluation_pair(batch)` on validation.
+    """Compute `metrics` (subset of METRICS) from `pl_module.evaluation_pair(batch)` on validation.
 
-    fvmd needs videos of ≥ 3 frames; fdd needs `fdd_checkpoint` (a local DINO checkpoint, `fdd_kind`).
+    fvmd needs videos of ≥ 3 frames; fdd needs `fdd_checkpoint` (a local DINO checkpoint, `fdd_kind`); lpips
+    needs `lpips_checkpoint` (local VGG16 weights) and, for LPIPS proper, `lpips_heads_checkpoint` (without the
+    heads it is the plain VGG feature distance).
     """
 
     def __init__(self, metrics: Sequence[str] = ("psnr", "ssim", "fvmd"), every_n_val_epochs: int = 1,
-                 max_batches: int = 4, fdd_checkpoint: str | None = None, fdd_kind: str = "dino_vits16") -> None:
+                 max_batches: int = 4, fdd_checkpoint: str | None = None, fdd_kind: str = "dino_vits16",
+                 lpips_checkpoint: str | None = None, lpips_heads_checkpoint: str | None = None) -> None:
         super().__init__()
         unknown = sorted(set(metrics) - set(METRICS))
         if unknown or not metrics:
@@ -58,10 +62,14 @@ class EvaluationCallback(pl.Callback):
         if "fdd" in metrics and not fdd_checkpoint:
             raise ValueError("callbacks.evaluation.metrics has fdd: set callbacks.evaluation.fdd_checkpoint to a local "
                              "DINO checkpoint (docs/tokenizer.md, 'Local checkpoints')")
+        if "lpips" in metrics and not lpips_checkpoint:
+            raise ValueError("callbacks.evaluation.metrics has lpips: set callbacks.evaluation.lpips_checkpoint to local "
+                             "VGG16 weights (and lpips_heads_checkpoint to the LPIPS heads; docs/tokenizer.md)")
         if every_n_val_epochs < 1 or max_batches < 1:
             raise ValueError("callbacks.evaluation: every_n_val_epochs and max_batches must be >= 1")
         self.metrics, self.every_n_val_epochs, self.max_batches = list(metrics), every_n_val_epochs, max_batches
         self.fdd_checkpoint, self.fdd_kind = fdd_checkpoint, fdd_kind
+        self.lpips_checkpoint, self.lpips_heads_checkpoint = lpips_checkpoint, lpips_heads_checkpoint
         self._val_runs = 0
         self._state: dict[str, Any] | None = None
 
@@ -80,6 +88,9 @@ class EvaluationCallback(pl.Callback):
             state["psnr"] = _Mean(psnr)
         if "ssim" in self.metrics:
             state["ssim"] = _Mean(ssim)
+        if "lpips" in self.metrics:
+            state["lpips"] = _Mean(load_perceptual(checkpoint=self.lpips_checkpoint, heads_checkpoint=self.lpips_heads_checkpoint,
+                                                   config_key="callbacks.evaluation.lpips_checkpoint"))
         if "fvmd" in self.metrics:
             state["fvmd"] = FVMD()
         if "fdd" in self.metrics:
@@ -95,7 +106,10 @@ class EvaluationCallback(pl.Callback):
         if real.shape != generated.shape:
             raise ValueError(f"{type(pl_module).__name__}.evaluation_pair gave real {tuple(real.shape)} and "
                              f"generated {tuple(generated.shape)}: expected one shape")
-        real, generated = real.detach().float().cpu(), generated.detach().float().cpu()
+        with torch.no_grad():
+            self._update(pl_module, real.detach().float().cpu(), generated.detach().float().cpu())
+
+    def _update(self, pl_module: pl.LightningModule, real: torch.Tensor, generated: torch.Tensor) -> None:
         for metric in self._state.values():
             if isinstance(metric, _Mean):
                 metric.update(real, generated)

@@ -9,7 +9,8 @@ no condition) and scored at the world model's rate against the clip's real conti
                 could score through this tokenizer and decoder (the ceiling)
     held frame  the last context frame repeated: a future that never moves (a floor for motion)
 
-Metrics (`evaluate.metrics`, docs/evaluation.md): psnr / ssim per generated frame against the real one, fvmd
+Metrics (`evaluate.metrics`, docs/evaluation.md): psnr / ssim / lpips (needs `evaluate.lpips_checkpoint`) per
+generated frame against the real one, fvmd
 between the sets of real and generated clips (last context frame + future), fdd over future frames (needs
 `evaluate.fdd_checkpoint`). Writes evaluation.json and the table evaluation.md into the run dir.
 """
@@ -24,6 +25,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
+from gaia_app.encoders.perceptual import load_perceptual
 from gaia_app.eval.controllability import probe_clips
 from gaia_app.eval.feature_distance import fdd
 from gaia_app.eval.fvmd import FVMD
@@ -32,7 +34,7 @@ from gaia_app.tasks.controllability import rollout_frames, world_clips
 from gaia_app.tasks.rollout import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 
-METRICS = ("psnr", "ssim", "fvmd", "fdd")
+METRICS = ("psnr", "ssim", "lpips", "fvmd", "fdd")
 
 
 def check_settings(cfg: DictConfig) -> None:
@@ -43,6 +45,9 @@ def check_settings(cfg: DictConfig) -> None:
         raise ValueError(f"evaluate.metrics={list(e.metrics)}: choose from {list(METRICS)}")
     if "fdd" in e.metrics and not e.fdd_checkpoint:
         raise ValueError("evaluate.metrics has fdd: set evaluate.fdd_checkpoint to a local DINO checkpoint")
+    if "lpips" in e.metrics and not e.lpips_checkpoint:
+        raise ValueError("evaluate.metrics has lpips: set evaluate.lpips_checkpoint to local VGG16 weights "
+                         "(and evaluate.lpips_heads_checkpoint to the LPIPS heads)")
     if e.contexts < 2:
         raise ValueError(f"evaluate.contexts={e.contexts}: Fréchet distances need at least 2 clips per set")
 
@@ -55,6 +60,11 @@ def score(cfg: DictConfig, real: torch.Tensor, candidate: torch.Tensor, t0: int)
         out["psnr"] = float(psnr(future.flatten(0, 1), real_future.flatten(0, 1)).mean())
     if "ssim" in e.metrics:
         out["ssim"] = float(ssim(future.flatten(0, 1), real_future.flatten(0, 1)).mean())
+    if "lpips" in e.metrics:
+        distance = load_perceptual(checkpoint=e.lpips_checkpoint, heads_checkpoint=e.lpips_heads_checkpoint,
+                                   config_key="evaluate.lpips_checkpoint")
+        with torch.no_grad():
+            out["lpips"] = float(distance(future.flatten(0, 1), real_future.flatten(0, 1)).mean())
     if "fvmd" in e.metrics:
         out["fvmd"] = FVMD().update(real[:, t0 - 1:], real=True).update(candidate[:, t0 - 1:], real=False).compute()
     if "fdd" in e.metrics:
@@ -65,7 +75,7 @@ def score(cfg: DictConfig, real: torch.Tensor, candidate: torch.Tensor, t0: int)
 
 def markdown(results: dict[str, Any]) -> str:
     names = list(next(iter(results["rows"].values())))
-    arrows = {"psnr": "↑", "ssim": "↑", "fvmd": "↓", "fdd": "↓"}
+    arrows = {"psnr": "↑", "ssim": "↑", "lpips": "↓", "fvmd": "↓", "fdd": "↓"}
     lines = ["| rollouts vs real continuations | " + " | ".join(f"{n} {arrows[n]}" for n in names) + " |",
              "|---" * (len(names) + 1) + "|"]
     lines += [f"| {row} | " + " | ".join(f"{values[n]:.3f}" for n in names) + " |" for row, values in results["rows"].items()]

@@ -68,3 +68,16 @@ def test_bad_settings_are_named(tmp_path) -> None:
         EvaluationCallback(["fdd"])
     with pytest.raises(TypeError, match="PairModule has no evaluation_pair"):
         validate(PairModule(0.0, with_pair=False), EvaluationCallback(["psnr"]), tmp_path)
+
+
+def test_lpips_from_local_vgg_weights(tmp_path) -> None:
+    from gaia_app.nn.vgg import VGG16Features
+
+    torch.manual_seed(0)
+    torch.save(VGG16Features().state_dict(), tmp_path / "vgg16_features.pth")
+    callback = lambda: EvaluationCallback(["lpips"], max_batches=1, lpips_checkpoint=str(tmp_path / "vgg16_features.pth"))  # noqa: E731
+    same = validate(PairModule(0.0), callback(), tmp_path / "same")
+    noisy = validate(PairModule(0.3), callback(), tmp_path / "noisy")
+    assert same["eval/lpips"] == pytest.approx(0.0, abs=1e-6) and noisy["eval/lpips"] > 0.01
+    with pytest.raises(ValueError, match="set callbacks.evaluation.lpips_checkpoint"):
+        EvaluationCallback(["lpips"])
