@@ -225,7 +225,8 @@ def test_evaluate_mode_scores_model_ceiling_and_floor(checkpoints, tmp_path: Pat
 
 
 @pytest.mark.parametrize(("overrides", "match"), [
-    (["evaluate.metrics=[fid]"], r"evaluate.metrics=\['fid'\]: choose from"),
+    (["evaluate.metrics=[fvd]"], r"evaluate.metrics=\['fvd'\]: choose from"),
+    (["evaluate.metrics=[fid]"], "set evaluate.fid_checkpoint"),
     (["evaluate.metrics=[fdd]"], "set evaluate.fdd_checkpoint"),
     (["evaluate.contexts=1"], "at least 2 clips per set"),
 ])

@@ -1,4 +1,4 @@
-"""Fréchet distances over frozen image features: FDD (DINO, GAIA-2 §6) and any extractor of the same shape.
+"""Fréchet distances over frozen image features: FID (Inception-v3), FDD (DINO, GAIA-2 §6), any other extractor.
 
 An extractor maps images (b, 3, H, W) in [-1, 1] to features (b, d). Real and generated images stream in by
 batches; the moments live in `FrechetStatistics` (float64, all-reduced over DDP ranks at `compute`).
@@ -11,7 +11,9 @@ from pathlib import Path
 
 import torch
 
+from gaia_app.encoders.inception import load_inception
 from gaia_app.encoders.vision import load_vision_teacher
+from gaia_app.nn.inception import FEATURE_DIM as INCEPTION_DIM
 from gaia_app.eval.frechet import FrechetStatistics, frechet_distance
 
 Extractor = Callable[[torch.Tensor], torch.Tensor]
@@ -47,3 +49,10 @@ def fdd(checkpoint: str | Path, kind: str = "dino_vits16", config_key: str = "ev
     loader: a missing file raises FileNotFoundError naming `config_key` and the path)."""
     teacher = load_vision_teacher(kind, checkpoint, config_key, **arch_overrides)
     return FeatureFrechetDistance(teacher.embed, teacher.feature_dim, batch)
+
+
+def fid(checkpoint: str | Path, config_key: str = "eval.fid", batch: int = 32, fid_variant: bool = True) -> FeatureFrechetDistance:
+    """Fréchet Inception Distance over the pool3 features of a local Inception-v3 checkpoint (the FID reference
+    weights, or torchvision's with fid_variant=False); frames are resized to 299 × 299."""
+    network = load_inception(checkpoint, config_key, fid_variant)
+    return FeatureFrechetDistance(network, INCEPTION_DIM, batch)

@@ -19,11 +19,11 @@ import torch
 import torch.distributed as dist
 
 from gaia_app.encoders.perceptual import load_perceptual
-from gaia_app.eval.feature_distance import fdd
+from gaia_app.eval.feature_distance import fdd, fid
 from gaia_app.eval.fvmd import FVMD
 from gaia_app.eval.metrics import psnr, ssim
 
-METRICS = ("psnr", "ssim", "lpips", "fvmd", "fdd")
+METRICS = ("psnr", "ssim", "lpips", "fvmd", "fid", "fdd")
 
 
 class _Mean:
@@ -47,18 +47,23 @@ class _Mean:
 class EvaluationCallback(pl.Callback):
     """Compute `metrics` (subset of METRICS) from `pl_module.evaluation_pair(batch)` on validation.
 
-    fvmd needs videos of ≥ 3 frames; fdd needs `fdd_checkpoint` (a local DINO checkpoint, `fdd_kind`); lpips
+    fvmd needs videos of ≥ 3 frames; fid needs `fid_checkpoint` (local Inception-v3 FID weights); fdd needs
+    `fdd_checkpoint` (a local DINO checkpoint, `fdd_kind`); lpips
     needs `lpips_checkpoint` (local VGG16 weights) and, for LPIPS proper, `lpips_heads_checkpoint` (without the
     heads it is the plain VGG feature distance).
     """
 
     def __init__(self, metrics: Sequence[str] = ("psnr", "ssim", "fvmd"), every_n_val_epochs: int = 1,
-                 max_batches: int = 4, fdd_checkpoint: str | None = None, fdd_kind: str = "dino_vits16",
+                 max_batches: int = 4, fid_checkpoint: str | None = None, fdd_checkpoint: str | None = None,
+                 fdd_kind: str = "dino_vits16",
                  lpips_checkpoint: str | None = None, lpips_heads_checkpoint: str | None = None) -> None:
         super().__init__()
         unknown = sorted(set(metrics) - set(METRICS))
         if unknown or not metrics:
             raise ValueError(f"callbacks.evaluation.metrics={list(metrics)}: choose from {list(METRICS)}")
+        if "fid" in metrics and not fid_checkpoint:
+            raise ValueError("callbacks.evaluation.metrics has fid: set callbacks.evaluation.fid_checkpoint to local "
+                             "Inception-v3 FID weights (docs/evaluation.md)")
         if "fdd" in metrics and not fdd_checkpoint:
             raise ValueError("callbacks.evaluation.metrics has fdd: set callbacks.evaluation.fdd_checkpoint to a local "
                              "DINO checkpoint (docs/tokenizer.md, 'Local checkpoints')")
@@ -68,7 +73,7 @@ class EvaluationCallback(pl.Callback):
         if every_n_val_epochs < 1 or max_batches < 1:
             raise ValueError("callbacks.evaluation: every_n_val_epochs and max_batches must be >= 1")
         self.metrics, self.every_n_val_epochs, self.max_batches = list(metrics), every_n_val_epochs, max_batches
-        self.fdd_checkpoint, self.fdd_kind = fdd_checkpoint, fdd_kind
+        self.fid_checkpoint, self.fdd_checkpoint, self.fdd_kind = fid_checkpoint, fdd_checkpoint, fdd_kind
         self.lpips_checkpoint, self.lpips_heads_checkpoint = lpips_checkpoint, lpips_heads_checkpoint
         self._val_runs = 0
         self._state: dict[str, Any] | None = None
@@ -93,6 +98,8 @@ class EvaluationCallback(pl.Callback):
                                                    config_key="callbacks.evaluation.lpips_checkpoint"))
         if "fvmd" in self.metrics:
             state["fvmd"] = FVMD()
+        if "fid" in self.metrics:
+            state["fid"] = fid(self.fid_checkpoint, "callbacks.evaluation.fid_checkpoint")
         if "fdd" in self.metrics:
             state["fdd"] = fdd(self.fdd_checkpoint, self.fdd_kind, "callbacks.evaluation.fdd_checkpoint")
         return state

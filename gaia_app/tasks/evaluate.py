@@ -11,8 +11,9 @@ no condition) and scored at the world model's rate against the clip's real conti
 
 Metrics (`evaluate.metrics`, docs/evaluation.md): psnr / ssim / lpips (needs `evaluate.lpips_checkpoint`) per
 generated frame against the real one, fvmd
-between the sets of real and generated clips (last context frame + future), fdd over future frames (needs
-`evaluate.fdd_checkpoint`). Writes evaluation.json and the table evaluation.md into the run dir.
+between the sets of real and generated clips (last context frame + future), fid / fdd over future frames
+(need `evaluate.fid_checkpoint` / `evaluate.fdd_checkpoint`). Writes evaluation.json and the table evaluation.md
+into the run dir.
 """
 
 from __future__ import annotations
@@ -27,14 +28,14 @@ from omegaconf import DictConfig
 
 from gaia_app.encoders.perceptual import load_perceptual
 from gaia_app.eval.controllability import probe_clips
-from gaia_app.eval.feature_distance import fdd
+from gaia_app.eval.feature_distance import fdd, fid
 from gaia_app.eval.fvmd import FVMD
 from gaia_app.eval.metrics import psnr, ssim
 from gaia_app.tasks.controllability import rollout_frames, world_clips
 from gaia_app.tasks.rollout import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 
-METRICS = ("psnr", "ssim", "lpips", "fvmd", "fdd")
+METRICS = ("psnr", "ssim", "lpips", "fvmd", "fid", "fdd")
 
 
 def check_settings(cfg: DictConfig) -> None:
@@ -43,6 +44,8 @@ def check_settings(cfg: DictConfig) -> None:
     unknown = sorted(set(e.metrics) - set(METRICS))
     if unknown or not e.metrics:
         raise ValueError(f"evaluate.metrics={list(e.metrics)}: choose from {list(METRICS)}")
+    if "fid" in e.metrics and not e.fid_checkpoint:
+        raise ValueError("evaluate.metrics has fid: set evaluate.fid_checkpoint to local Inception-v3 FID weights")
     if "fdd" in e.metrics and not e.fdd_checkpoint:
         raise ValueError("evaluate.metrics has fdd: set evaluate.fdd_checkpoint to a local DINO checkpoint")
     if "lpips" in e.metrics and not e.lpips_checkpoint:
@@ -67,6 +70,9 @@ def score(cfg: DictConfig, real: torch.Tensor, candidate: torch.Tensor, t0: int)
             out["lpips"] = float(distance(future.flatten(0, 1), real_future.flatten(0, 1)).mean())
     if "fvmd" in e.metrics:
         out["fvmd"] = FVMD().update(real[:, t0 - 1:], real=True).update(candidate[:, t0 - 1:], real=False).compute()
+    if "fid" in e.metrics:
+        metric = fid(e.fid_checkpoint, "evaluate.fid_checkpoint")
+        out["fid"] = metric.update(real_future, real=True).update(future, real=False).compute()
     if "fdd" in e.metrics:
         metric = fdd(e.fdd_checkpoint, e.fdd_kind, "evaluate.fdd_checkpoint")
         out["fdd"] = metric.update(real_future, real=True).update(future, real=False).compute()
@@ -75,7 +81,7 @@ def score(cfg: DictConfig, real: torch.Tensor, candidate: torch.Tensor, t0: int)
 
 def markdown(results: dict[str, Any]) -> str:
     names = list(next(iter(results["rows"].values())))
-    arrows = {"psnr": "↑", "ssim": "↑", "lpips": "↓", "fvmd": "↓", "fdd": "↓"}
+    arrows = {"psnr": "↑", "ssim": "↑", "lpips": "↓", "fvmd": "↓", "fid": "↓", "fdd": "↓"}
     lines = ["| rollouts vs real continuations | " + " | ".join(f"{n} {arrows[n]}" for n in names) + " |",
              "|---" * (len(names) + 1) + "|"]
     lines += [f"| {row} | " + " | ".join(f"{values[n]:.3f}" for n in names) + " |" for row, values in results["rows"].items()]

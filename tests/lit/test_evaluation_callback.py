@@ -62,7 +62,9 @@ def test_max_batches_limits_the_work(tmp_path) -> None:
 
 
 def test_bad_settings_are_named(tmp_path) -> None:
-    with pytest.raises(ValueError, match=r"metrics=\['fid'\]: choose from"):
+    with pytest.raises(ValueError, match=r"metrics=\['fvd'\]: choose from"):
+        EvaluationCallback(["fvd"])
+    with pytest.raises(ValueError, match="set callbacks.evaluation.fid_checkpoint"):
         EvaluationCallback(["fid"])
     with pytest.raises(ValueError, match="set callbacks.evaluation.fdd_checkpoint"):
         EvaluationCallback(["fdd"])
