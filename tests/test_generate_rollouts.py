@@ -213,11 +213,13 @@ def test_gallery_strips_and_headless_viewer_screenshot(checkpoints, tmp_path: Pa
 
 
 def test_evaluate_mode_scores_model_ceiling_and_floor(checkpoints, tmp_path: Path) -> None:
-    results = run(checkpoints, tmp_path, "mode=evaluate", "evaluate.contexts=3", "seconds=0.5")
+    results = run(checkpoints, tmp_path, "mode=evaluate", "evaluate.contexts=3", "seconds=0.5", "evaluate.probe_clips=2",
+                  "evaluate.probe_steps=2")
     assert set(results["rows"]) == {"model (video rollouts)", "tokens (real continuation, tokenized and rendered)",
                                     "held frame (last context frame repeated)"}
     for row in results["rows"].values():
-        assert set(row) == {"psnr", "ssim", "fvmd"} and np.isfinite(list(row.values())).all()
+        assert set(row) == {"psnr", "ssim", "fvmd", "agent_iou"} and np.isfinite(list(row.values())).all()
+    assert 0 <= results["agent_probe"]["iou_on_real_future"] <= 1
     assert results["generated_frames"] == 4 and results["contexts"] == 3
     table = (tmp_path / "evaluation.md").read_text()
     assert "| model (video rollouts) |" in table and "fvmd ↓" in table

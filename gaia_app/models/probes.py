@@ -76,3 +76,44 @@ class SceneAttributeProbe(nn.Module):
         """Sum of cross-entropies; labels: {attribute: (b,) class indices}."""
         logits = self(frames)
         return sum(nn.functional.cross_entropy(logits[name], labels[name]) for name in ATTRIBUTES)
+
+
+class AgentSegmentationProbe(nn.Module):
+    """One frame → per-pixel logits of "an agent (vehicle, pedestrian, cyclist) is here", (b, 3, H, W) → (b, H, W).
+
+    A small encoder-decoder with skip connections (U-Net style, three scales); H and W multiples of 8. Trained on
+    the synthetic world's instance masks, it scores where generated frames put agents (agent IoU, GAIA-2 §6).
+    """
+
+    def __init__(self, widths: Sequence[int] = (16, 32, 64)):
+        super().__init__()
+        self.down = nn.ModuleList()
+        prev = 3
+        for width in widths:
+            self.down.append(nn.Sequential(nn.Conv2d(prev, width, 3, stride=2, padding=1), nn.GroupNorm(8, width), nn.SiLU(),
+                                           nn.Conv2d(width, width, 3, padding=1), nn.GroupNorm(8, width), nn.SiLU()))
+            prev = width
+        self.up = nn.ModuleList()
+        for skip in (*reversed(widths[:-1]), 3):
+            self.up.append(nn.Sequential(nn.Conv2d(prev + skip, max(skip, 16), 3, padding=1), nn.GroupNorm(8, max(skip, 16)),
+                                         nn.SiLU()))
+            prev = max(skip, 16)
+        self.head = nn.Conv2d(prev, 1, 1)
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        """frames (b, 3, H, W) in [-1, 1] → logits (b, H, W)."""
+        if frames.shape[-2] % 8 or frames.shape[-1] % 8:
+            raise ValueError(f"AgentSegmentationProbe needs H and W divisible by 8, got {tuple(frames.shape[-2:])}")
+        skips, x = [frames], frames
+        for block in self.down:
+            x = block(x)
+            skips.append(x)
+        skips.pop()
+        for block in self.up:
+            x = nn.functional.interpolate(x, scale_factor=2, mode="nearest")
+            x = block(torch.cat([x, skips.pop()], dim=1))
+        return self.head(x)[:, 0]
+
+    def loss(self, frames: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
+        """Binary cross-entropy against masks (b, H, W) bool."""
+        return nn.functional.binary_cross_entropy_with_logits(self(frames), masks.float())

@@ -26,6 +26,7 @@ import torch
 from omegaconf import DictConfig
 
 from gaia_app.data.synthetic import SyntheticClipDataset
+from gaia_app.data.synthetic.generate import SyntheticSample
 from gaia_app.data.synthetic.scenario import Scenario
 from gaia_app.eval.controllability import ProbeClips, action_error, attribute_accuracy, probe_clips, train_probes
 from gaia_app.models.probes import ATTRIBUTES
@@ -37,13 +38,20 @@ from gaia_app.utils.run_dir import atomic_write_text
 SOURCE_FPS = 25.0
 
 
-def world_clips(seed: int, count: int, height: int, width: int, frames: int, rate: float,
-                scenario: Scenario | None = None, start: int = 0) -> list:
-    """Clips start..start+count-1 of the synthetic world `seed`, long enough for `frames` frames at `rate`."""
+def world_samples(seed: int, count: int, height: int, width: int, frames: int, rate: float,
+                  scenario: Scenario | None = None, start: int = 0) -> list[SyntheticSample]:
+    """Samples start..start+count-1 of the synthetic world `seed` (clip + simulation, e.g. for instance masks),
+    long enough for `frames` frames at `rate`."""
     clip_len = math.ceil((frames - 1) / rate * SOURCE_FPS) + 1
     world = SyntheticClipDataset(num_clips=start + count, seed=seed, height=height, width=width, clip_len=clip_len,
                                  scenario=scenario)
-    return [world[i] for i in range(start, start + count)]
+    return [world.sample(i) for i in range(start, start + count)]
+
+
+def world_clips(seed: int, count: int, height: int, width: int, frames: int, rate: float,
+                scenario: Scenario | None = None, start: int = 0) -> list:
+    """The clips of `world_samples`."""
+    return [s.clip for s in world_samples(seed, count, height, width, frames, rate, scenario, start)]
 
 
 def commanded_actions(contexts: ProbeClips, t0: int, frames: int, rate: float,

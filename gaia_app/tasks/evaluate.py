@@ -12,7 +12,9 @@ no condition) and scored at the world model's rate against the clip's real conti
 Metrics (`evaluate.metrics`, docs/evaluation.md): psnr / ssim / lpips (needs `evaluate.lpips_checkpoint`) per
 generated frame against the real one, fvmd
 between the sets of real and generated clips (last context frame + future), fid / fdd over future frames
-(need `evaluate.fid_checkpoint` / `evaluate.fdd_checkpoint`). Writes evaluation.json and the table evaluation.md
+(need `evaluate.fid_checkpoint` / `evaluate.fdd_checkpoint`), agent_iou of a segmentation probe's agent masks on
+generated frames with the real frames' agent masks (the probe trains in the run on `evaluate.probe_clips` clips of
+the world `evaluate.probe_seed`; its IoU on the real frames themselves is reported too). Writes evaluation.json and the table evaluation.md
 into the run dir.
 """
 
@@ -27,15 +29,17 @@ import torch
 from omegaconf import DictConfig
 
 from gaia_app.encoders.perceptual import load_perceptual
+from gaia_app.eval.agent_iou import agent_clips, agent_iou, train_agent_probe
 from gaia_app.eval.controllability import probe_clips
 from gaia_app.eval.feature_distance import fdd, fid
 from gaia_app.eval.fvmd import FVMD
 from gaia_app.eval.metrics import psnr, ssim
-from gaia_app.tasks.controllability import rollout_frames, world_clips
+from gaia_app.tasks.controllability import rollout_frames, world_samples
 from gaia_app.tasks.rollout import load_pipeline
+from gaia_app.models.probes import AgentSegmentationProbe
 from gaia_app.utils.run_dir import atomic_write_text
 
-METRICS = ("psnr", "ssim", "lpips", "fvmd", "fid", "fdd")
+METRICS = ("psnr", "ssim", "lpips", "fvmd", "fid", "fdd", "agent_iou")
 
 
 def check_settings(cfg: DictConfig) -> None:
@@ -55,8 +59,10 @@ def check_settings(cfg: DictConfig) -> None:
         raise ValueError(f"evaluate.contexts={e.contexts}: Fréchet distances need at least 2 clips per set")
 
 
-def score(cfg: DictConfig, real: torch.Tensor, candidate: torch.Tensor, t0: int) -> dict[str, float]:
-    """Metrics of candidate futures against real ones; both (b, t0 + f, 3, H, W), scored from frame t0 − 1 on."""
+def score(cfg: DictConfig, real: torch.Tensor, candidate: torch.Tensor, t0: int,
+          agents: tuple[AgentSegmentationProbe, torch.Tensor] | None = None) -> dict[str, float]:
+    """Metrics of candidate futures against real ones; both (b, t0 + f, 3, H, W), scored from frame t0 − 1 on.
+    agents: the agent probe and the real clips' agent masks (b, t0 + f, H, W), for agent_iou."""
     e, out = cfg.evaluate, {}
     real_future, future = real[:, t0:], candidate[:, t0:]
     if "psnr" in e.metrics:
@@ -76,15 +82,28 @@ def score(cfg: DictConfig, real: torch.Tensor, candidate: torch.Tensor, t0: int)
     if "fdd" in e.metrics:
         metric = fdd(e.fdd_checkpoint, e.fdd_kind, "evaluate.fdd_checkpoint")
         out["fdd"] = metric.update(real_future, real=True).update(future, real=False).compute()
+    if agents is not None:
+        out["agent_iou"] = agent_iou(agents[0], future, agents[1][:, t0:])
     return out
+
+
+def agent_probe(cfg: DictConfig, samples: list, height: int, width: int, frames: int, rate: float
+                ) -> tuple[tuple[AgentSegmentationProbe, torch.Tensor], dict[str, float]]:
+    """Train the agent probe on the probe world; returns (probe, the contexts' masks) and the fit summary."""
+    e = cfg.evaluate
+    train = world_samples(e.probe_seed, e.probe_clips, height, width, frames, rate)
+    probe, fit = train_agent_probe(*agent_clips(train, rate, frames), steps=e.probe_steps, seed=cfg.seed)
+    return (probe, agent_clips(samples, rate, frames)[1]), fit
 
 
 def markdown(results: dict[str, Any]) -> str:
     names = list(next(iter(results["rows"].values())))
-    arrows = {"psnr": "↑", "ssim": "↑", "lpips": "↓", "fvmd": "↓", "fid": "↓", "fdd": "↓"}
+    arrows = {"psnr": "↑", "ssim": "↑", "lpips": "↓", "fvmd": "↓", "fid": "↓", "fdd": "↓", "agent_iou": "↑"}
     lines = ["| rollouts vs real continuations | " + " | ".join(f"{n} {arrows[n]}" for n in names) + " |",
              "|---" * (len(names) + 1) + "|"]
     lines += [f"| {row} | " + " | ".join(f"{values[n]:.3f}" for n in names) + " |" for row, values in results["rows"].items()]
+    if "agent_probe" in results:
+        lines += ["", f"agent probe IoU on the real future frames themselves: {results['agent_probe']['iou_on_real_future']:.3f}"]
     return "\n".join(lines) + "\n"
 
 
@@ -94,16 +113,21 @@ def evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     pipeline = load_pipeline(cfg)
     rate, (height, width), n = pipeline.rate, pipeline.image_size, cfg.evaluate.contexts
     t0, frames = cfg.context.frames, max(2, math.ceil(cfg.seconds * rate))
-    real = probe_clips(world_clips(cfg.context.seed, n, height, width, t0 + frames, rate), rate, t0 + frames).frames
+    samples = world_samples(cfg.context.seed, n, height, width, t0 + frames, rate)
+    real = probe_clips([s.clip for s in samples], rate, t0 + frames).frames
+    agents, extra = None, {}
+    if "agent_iou" in cfg.evaluate.metrics:
+        agents, fit = agent_probe(cfg, samples, height, width, t0 + frames, rate)
+        extra = {"agent_probe": {**fit, "iou_on_real_future": agent_iou(agents[0], real[:, t0:], agents[1][:, t0:])}}
     generator = torch.Generator(device=pipeline.device).manual_seed(int(cfg.seed))
     model = rollout_frames(pipeline, real[:, :t0], frames, n, None, None, generator)
     tokens = torch.stack([pipeline.encode(clip) for clip in real])
     reconstructed = pipeline.render(tokens, generator)[0]
     held = torch.cat([real[:, :t0], real[:, t0 - 1 : t0].expand(-1, frames, -1, -1, -1)], dim=1)
-    rows = {"model (video rollouts)": score(cfg, real, model, t0),
-            "tokens (real continuation, tokenized and rendered)": score(cfg, real, reconstructed, t0),
-            "held frame (last context frame repeated)": score(cfg, real, held, t0)}
-    results = {"contexts": n, "context_frames": t0, "generated_frames": frames, "rate": rate, "rows": rows}
+    rows = {"model (video rollouts)": score(cfg, real, model, t0, agents),
+            "tokens (real continuation, tokenized and rendered)": score(cfg, real, reconstructed, t0, agents),
+            "held frame (last context frame repeated)": score(cfg, real, held, t0, agents)}
+    results = {"contexts": n, "context_frames": t0, "generated_frames": frames, "rate": rate, "rows": rows, **extra}
     atomic_write_text(run_dir / "evaluation.json", json.dumps(results, indent=2))
     atomic_write_text(run_dir / "evaluation.md", markdown(results))
     return results
