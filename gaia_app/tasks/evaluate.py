@@ -129,5 +129,7 @@ def evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             "held frame (last context frame repeated)": score(cfg, real, held, t0, agents)}
     results = {"contexts": n, "context_frames": t0, "generated_frames": frames, "rate": rate, "rows": rows, **extra}
     atomic_write_text(run_dir / "evaluation.json", json.dumps(results, indent=2))
-    atomic_write_text(run_dir / "evaluation.md", markdown(results))
+    table = markdown(results)
+    atomic_write_text(run_dir / "evaluation.md", table)
+    print(table)  # the one table the command is run for
     return results
