@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 from rerun.chunk import RrdReader
 
 from gaia_app.data.clip import ClipError
@@ -236,3 +237,16 @@ def test_evaluate_mode_bad_settings_fail_before_any_work(checkpoints, tmp_path: 
     with pytest.raises(ValueError, match=match):
         run(checkpoints, tmp_path, "mode=evaluate", *overrides)
     assert_no_outputs(tmp_path)
+
+
+def test_evaluate_scores_a_perfect_future_perfectly_and_a_frozen_one_worse() -> None:
+    from gaia_app.tasks.evaluate import score
+
+    g = torch.Generator().manual_seed(0)
+    base = torch.nn.functional.avg_pool2d(torch.rand(4, 3, 40, 72, generator=g) * 2 - 1, 5, 1, 2)
+    real = torch.stack([torch.roll(base, shifts=(0, 2 * i), dims=(-2, -1))[:, :, 4:36, 4:68] for i in range(6)], dim=1)
+    frozen = torch.cat([real[:, :2], real[:, 1:2].expand(-1, 4, -1, -1, -1)], dim=1)
+    perfect = score(["psnr", "ssim", "fvmd"], real, real, t0=2)
+    worse = score(["psnr", "ssim", "fvmd"], real, frozen, t0=2)
+    assert perfect["ssim"] == pytest.approx(1.0) and perfect["fvmd"] == pytest.approx(0.0, abs=1e-9) and perfect["psnr"] > 90
+    assert worse["psnr"] < 30 and worse["ssim"] < 0.9 and worse["fvmd"] > 0.1

@@ -42,6 +42,10 @@ class FeatureFrechetDistance:
     def compute(self) -> float:
         return frechet_distance(self.real.all_reduce(), self.generated.all_reduce())
 
+    def fresh(self) -> FeatureFrechetDistance:
+        """A new, empty metric over the same (already loaded) extractor."""
+        return FeatureFrechetDistance(self.extractor, self.real.dim, self.batch)
+
 
 def fdd(checkpoint: str | Path, kind: str = "dino_vits16", config_key: str = "eval.fdd", batch: int = 64,
         **arch_overrides: int | None) -> FeatureFrechetDistance:

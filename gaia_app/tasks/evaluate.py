@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -35,8 +36,8 @@ from gaia_app.eval.feature_distance import fdd, fid
 from gaia_app.eval.fvmd import FVMD
 from gaia_app.eval.metrics import psnr, ssim
 from gaia_app.tasks.controllability import rollout_frames, world_samples
-from gaia_app.tasks.rollout import load_pipeline
 from gaia_app.models.probes import AgentSegmentationProbe
+from gaia_app.tasks.rollout import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 
 METRICS = ("psnr", "ssim", "lpips", "fvmd", "fid", "fdd", "agent_iou")
@@ -59,31 +60,41 @@ def check_settings(cfg: DictConfig) -> None:
         raise ValueError(f"evaluate.contexts={e.contexts}: Fréchet distances need at least 2 clips per set")
 
 
-def score(cfg: DictConfig, real: torch.Tensor, candidate: torch.Tensor, t0: int,
+def feature_metrics(cfg: DictConfig) -> dict[str, Any]:
+    """The networks of the chosen lpips / fid / fdd metrics, loaded once for every row."""
+    e, out = cfg.evaluate, {}
+    if "lpips" in e.metrics:
+        out["lpips"] = load_perceptual(checkpoint=e.lpips_checkpoint, heads_checkpoint=e.lpips_heads_checkpoint,
+                                       config_key="evaluate.lpips_checkpoint")
+    if "fid" in e.metrics:
+        out["fid"] = fid(e.fid_checkpoint, "evaluate.fid_checkpoint")
+    if "fdd" in e.metrics:
+        out["fdd"] = fdd(e.fdd_checkpoint, e.fdd_kind, "evaluate.fdd_checkpoint")
+    return out
+
+
+def score(metrics: Sequence[str], real: torch.Tensor, candidate: torch.Tensor, t0: int,
+          networks: dict[str, Any] | None = None,
           agents: tuple[AgentSegmentationProbe, torch.Tensor] | None = None) -> dict[str, float]:
     """Metrics of candidate futures against real ones; both (b, t0 + f, 3, H, W), scored from frame t0 − 1 on.
-    agents: the agent probe and the real clips' agent masks (b, t0 + f, H, W), for agent_iou."""
-    e, out = cfg.evaluate, {}
-    real_future, future = real[:, t0:], candidate[:, t0:]
-    if "psnr" in e.metrics:
-        out["psnr"] = float(psnr(future.flatten(0, 1), real_future.flatten(0, 1)).mean())
-    if "ssim" in e.metrics:
-        out["ssim"] = float(ssim(future.flatten(0, 1), real_future.flatten(0, 1)).mean())
-    if "lpips" in e.metrics:
-        distance = load_perceptual(checkpoint=e.lpips_checkpoint, heads_checkpoint=e.lpips_heads_checkpoint,
-                                   config_key="evaluate.lpips_checkpoint")
+    networks: `feature_metrics` (lpips distance, fid / fdd metrics whose networks each row reuses); agents: the agent probe and the real clips'
+    agent masks (b, t0 + f, H, W), for agent_iou."""
+    networks, out = networks or {}, {}
+    real_future, future = real[:, t0:].flatten(0, 1), candidate[:, t0:].flatten(0, 1)
+    if "psnr" in metrics:
+        out["psnr"] = float(psnr(future, real_future).mean())
+    if "ssim" in metrics:
+        out["ssim"] = float(ssim(future, real_future).mean())
+    if "lpips" in metrics:
         with torch.no_grad():
-            out["lpips"] = float(distance(future.flatten(0, 1), real_future.flatten(0, 1)).mean())
-    if "fvmd" in e.metrics:
+            out["lpips"] = float(networks["lpips"](future, real_future).mean())
+    if "fvmd" in metrics:
         out["fvmd"] = FVMD().update(real[:, t0 - 1:], real=True).update(candidate[:, t0 - 1:], real=False).compute()
-    if "fid" in e.metrics:
-        metric = fid(e.fid_checkpoint, "evaluate.fid_checkpoint")
-        out["fid"] = metric.update(real_future, real=True).update(future, real=False).compute()
-    if "fdd" in e.metrics:
-        metric = fdd(e.fdd_checkpoint, e.fdd_kind, "evaluate.fdd_checkpoint")
-        out["fdd"] = metric.update(real_future, real=True).update(future, real=False).compute()
+    for name in ("fid", "fdd"):
+        if name in metrics:
+            out[name] = networks[name].fresh().update(real_future, real=True).update(future, real=False).compute()
     if agents is not None:
-        out["agent_iou"] = agent_iou(agents[0], future, agents[1][:, t0:])
+        out["agent_iou"] = agent_iou(agents[0], candidate[:, t0:], agents[1][:, t0:])
     return out
 
 
@@ -124,9 +135,10 @@ def evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     tokens = torch.stack([pipeline.encode(clip) for clip in real])
     reconstructed = pipeline.render(tokens, generator)[0]
     held = torch.cat([real[:, :t0], real[:, t0 - 1 : t0].expand(-1, frames, -1, -1, -1)], dim=1)
-    rows = {"model (video rollouts)": score(cfg, real, model, t0, agents),
-            "tokens (real continuation, tokenized and rendered)": score(cfg, real, reconstructed, t0, agents),
-            "held frame (last context frame repeated)": score(cfg, real, held, t0, agents)}
+    metrics, networks = list(cfg.evaluate.metrics), feature_metrics(cfg)
+    rows = {name: score(metrics, real, candidate, t0, networks, agents) for name, candidate in (
+        ("model (video rollouts)", model), ("tokens (real continuation, tokenized and rendered)", reconstructed),
+        ("held frame (last context frame repeated)", held))}
     results = {"contexts": n, "context_frames": t0, "generated_frames": frames, "rate": rate, "rows": rows, **extra}
     atomic_write_text(run_dir / "evaluation.json", json.dumps(results, indent=2))
     table = markdown(results)

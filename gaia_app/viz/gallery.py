@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gaia_app.data.synthetic.gallery import _label as label
+from gaia_app.data.synthetic.gallery import label
 from gaia_app.data.video_io import read_video
 from gaia_app.utils.run_dir import atomic_write_bytes
 from gaia_app.viz.screenshot import ViewerUnavailable, screenshot_recording

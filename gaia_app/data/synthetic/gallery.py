@@ -34,14 +34,14 @@ def gallery_image(seed: int = 0, height: int = 126, width: int = 224, rows=GALLE
         scenario = Scenario(environment=env, weather=weather, time_of_day=tod, behaviour=behaviour)
         clip = generate_clip(seed=seed + k, height=height, width=width, cameras=5, clip_len=1, scenario=scenario)
         row = np.concatenate(list(clip.frames[:, 0].transpose(0, 2, 3, 1)), axis=1).copy()
-        _label(row, f"{env}, {weather}, {tod}, {behaviour}", (0, 0))
+        label(row, f"{env}, {weather}, {tod}, {behaviour}", (0, 0))
         for v, cam in enumerate(clip.cameras):
-            _label(row, cam.name, (v * width, height - 13))
+            label(row, cam.name, (v * width, height - 13))
         lines.append(row)
     return np.concatenate(lines, axis=0)
 
 
-def _label(img: np.ndarray, text: str, corner: tuple[int, int]) -> None:
+def label(img: np.ndarray, text: str, corner: tuple[int, int]) -> None:
     """White text on a dark band at `corner` (x, y of the band's top left), in place."""
     (w, h), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.33, 1)
     x, y = corner
