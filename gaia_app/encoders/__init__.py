@@ -1,6 +1,7 @@
 """Frozen pretrained networks behind one interface, loaded from local files only (DESIGN.md §6).
 
-- `load_vision_teacher(kind="dino_vits16", checkpoint=...)` → VisionTeacher (DINO patch features)
+- `load_vision_teacher(kind="dino_vits16", checkpoint=...)` → VisionTeacher (DINO patch features;
+  kinds in `DINO_ARCHS`: dino_vits16, dino_vitb16, dinov2_vits14, dinov2_vitb14)
 - `load_perceptual(kind="vgg16", checkpoint=...)` → PerceptualDistance (LPIPS-style VGG distance)
 
 Both return networks with frozen weights in eval mode. A missing file raises FileNotFoundError

@@ -1,4 +1,4 @@
-"""Frozen DINO teacher for the tokenizer's inductive-bias loss (GAIA-1 §2.2, ref. [30]), local weights only.
+"""Frozen DINO / DINOv2 teacher for the tokenizer's inductive-bias loss (GAIA-1 §2.2, ref. [30]), local weights only.
 
 Legend: b batch, d teacher feature dim, H W image size, gh gw teacher patch grid, h w token grid.
 """
@@ -18,17 +18,28 @@ from gaia_app.nn.vit import VisionTransformer
 
 @dataclass(frozen=True)
 class ViTArch:
-    """Architecture of a DINO backbone (facebookresearch/dino `vit_small` / `vit_base`)."""
+    """Architecture of a DINO backbone (facebookresearch/dino or /dinov2 `vit_small` / `vit_base`).
+
+    image_size is the training resolution (the positional grid a checkpoint without `pos_embed` would
+    have); layer_scale and mask_token select the DINOv2 layout (see gaia_app.nn.vit).
+    """
 
     embed_dim: int
     depth: int
     num_heads: int
     patch_size: int = 16
+    image_size: int = 224
+    layer_scale: bool = False
+    mask_token: bool = False
 
+
+_DINOV2 = dict(patch_size=14, image_size=518, layer_scale=True, mask_token=True)
 
 DINO_ARCHS = {
     "dino_vits16": ViTArch(embed_dim=384, depth=12, num_heads=6),
     "dino_vitb16": ViTArch(embed_dim=768, depth=12, num_heads=12),
+    "dinov2_vits14": ViTArch(embed_dim=384, depth=12, num_heads=6, **_DINOV2),
+    "dinov2_vitb14": ViTArch(embed_dim=768, depth=12, num_heads=12, **_DINOV2),
 }
 
 
@@ -36,7 +47,8 @@ class VisionTeacher(FrozenImageNetwork):
     """Frozen ViT giving the patch-feature map that the tokenizer's quantised features are distilled to.
 
     Images are resized (bilinear) to the nearest multiple of the patch size, so 288×512 with p = 16
-    gives the 18×32 token grid of GAIA-1 §4.1 directly.
+    gives the 18×32 token grid of GAIA-1 §4.1 directly; DINOv2 (p = 14) sees 294×518 → 21×37, which
+    `distillation_loss` resizes to the token grid.
     """
 
     def __init__(self, vit: VisionTransformer):
@@ -109,15 +121,18 @@ def load_vision_teacher(
 ) -> VisionTeacher:
     """Build the teacher `kind` and load its weights from the local `checkpoint`; frozen, eval mode.
 
+    kind: dino_vits16 / dino_vitb16 (DINO v1) or dinov2_vits14 / dinov2_vitb14 (DINOv2, no registers).
     The positional grid is read from the checkpoint's `pos_embed` (224-pixel training → 14×14 at
-    p = 16). embed_dim / depth / num_heads override the preset, for small networks of the same layout.
+    p = 16; DINOv2's 518 pixels → 37×37 at p = 14). embed_dim / depth / num_heads override the preset,
+    for small networks of the same layout.
     Raises FileNotFoundError (missing file) or StateDictMismatchError (wrong keys or shapes).
     """
     arch = dino_arch(kind, config_key, embed_dim=embed_dim, depth=depth, num_heads=num_heads)
     state = dino_backbone_state_dict(read_state_dict(checkpoint, config_key))
     vit = VisionTransformer(
-        image_size=stored_grid(state) * arch.patch_size, patch_size=arch.patch_size,
-        embed_dim=arch.embed_dim, depth=arch.depth, num_heads=arch.num_heads,
+        image_size=stored_grid(state, arch.image_size // arch.patch_size) * arch.patch_size,
+        patch_size=arch.patch_size, embed_dim=arch.embed_dim, depth=arch.depth, num_heads=arch.num_heads,
+        layer_scale=arch.layer_scale, mask_token=arch.mask_token,
     )
     load_exact(vit, state, f"{config_key}.checkpoint '{checkpoint}' (kind {kind})")
     return freeze(VisionTeacher(vit).float())

@@ -1,10 +1,13 @@
-"""Vision Transformer with the parameter names of the official DINO `vision_transformer.py`.
+"""Vision Transformer with the parameter names of the official DINO and DINOv2 `vision_transformer.py`.
 
 Legend: b batch, n = gh·gw patches, d embed dim, gh gw patch grid, p patch size.
 
 Names match facebookresearch/dino, so an official `dino_vits16` / `dino_vitb16` backbone state dict
 loads strictly: `cls_token`, `pos_embed`, `patch_embed.proj.{weight,bias}`,
 `blocks.N.{norm1,attn.qkv,attn.proj,norm2,mlp.fc1,mlp.fc2}.{weight,bias}`, `norm.{weight,bias}`.
+With `layer_scale=True, mask_token=True` the layout is facebookresearch/dinov2's (`dinov2_vits14`,
+`dinov2_vitb14`: hub models built with `block_chunks=0`, `init_values=1.0`): the same keys plus
+`mask_token` (1, d) and `blocks.N.ls1.gamma`, `blocks.N.ls2.gamma` (d,).
 Used as the frozen DINO teacher of GAIA-1 §2.2 (ref. [30]); no timm, no torchvision.
 """
 
@@ -56,29 +59,50 @@ class Mlp(nn.Module):
         return self.fc2(self.act(self.fc1(x)))
 
 
-class Block(nn.Module):
-    """Pre-norm transformer block: (b, n, d) → (b, n, d)."""
+class LayerScale(nn.Module):
+    """Learned per-channel scale of a residual branch (CaiT; DINOv2's `ls1` / `ls2`): (..., d) → (..., d)."""
 
-    def __init__(self, dim: int, num_heads: int, mlp_ratio: float, qkv_bias: bool, norm_eps: float):
+    def __init__(self, dim: int, init_value: float = 1.0):
+        super().__init__()
+        self.gamma = nn.Parameter(torch.full((dim,), init_value))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.gamma
+
+
+class Block(nn.Module):
+    """Pre-norm transformer block: (b, n, d) → (b, n, d).
+
+    x + ls1(attn(norm1(x))), then + ls2(mlp(norm2(x))); without layer scale (DINO v1) ls1 and ls2 are
+    parameter-free identities, so the state dict has no `ls*` keys.
+    """
+
+    def __init__(self, dim: int, num_heads: int, mlp_ratio: float, qkv_bias: bool, norm_eps: float,
+                 layer_scale: bool = False):
         super().__init__()
         self.norm1 = nn.LayerNorm(dim, eps=norm_eps)
         self.attn = Attention(dim, num_heads, qkv_bias)
+        self.ls1 = LayerScale(dim) if layer_scale else nn.Identity()
         self.norm2 = nn.LayerNorm(dim, eps=norm_eps)
         self.mlp = Mlp(dim, int(dim * mlp_ratio))
+        self.ls2 = LayerScale(dim) if layer_scale else nn.Identity()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = x + self.attn(self.norm1(x))
-        return x + self.mlp(self.norm2(x))
+        x = x + self.ls1(self.attn(self.norm1(x)))
+        return x + self.ls2(self.mlp(self.norm2(x)))
 
 
 class VisionTransformer(nn.Module):
     """ViT backbone with a cls token (DINO's layout; ViT-S/16: d=384, depth 12, 6 heads; ViT-B/16: 768, 12, 12).
 
     Args:
-        image_size: training resolution, fixes the stored positional grid (224 → 14×14 at p=16);
-            other resolutions interpolate it (bicubic), as DINO does.
+        image_size: training resolution, fixes the stored positional grid (224 → 14×14 at p=16;
+            DINOv2: 518 → 37×37 at p=14); other resolutions interpolate it (bicubic), as DINO does.
         patch_size, embed_dim, depth, num_heads, mlp_ratio, qkv_bias: architecture.
-        norm_eps: LayerNorm epsilon (1e-6 in DINO).
+        norm_eps: LayerNorm epsilon (1e-6 in DINO and DINOv2).
+        layer_scale: LayerScale `ls1` / `ls2` on every residual branch (DINOv2; gammas start at 1).
+        mask_token: hold DINOv2's `mask_token` (1, d). It replaces masked patches in DINOv2 training
+            only; the forward pass here never uses it, it exists so official checkpoints load exactly.
     """
 
     def __init__(
@@ -91,6 +115,8 @@ class VisionTransformer(nn.Module):
         mlp_ratio: float = 4.0,
         qkv_bias: bool = True,
         norm_eps: float = 1e-6,
+        layer_scale: bool = False,
+        mask_token: bool = False,
     ):
         super().__init__()
         self.patch_size = patch_size
@@ -99,7 +125,10 @@ class VisionTransformer(nn.Module):
         self.patch_embed = PatchEmbed(patch_size, embed_dim)
         self.cls_token = nn.Parameter(torch.zeros(1, 1, embed_dim))
         self.pos_embed = nn.Parameter(torch.zeros(1, 1 + self.base_grid**2, embed_dim))
-        self.blocks = nn.ModuleList(Block(embed_dim, num_heads, mlp_ratio, qkv_bias, norm_eps) for _ in range(depth))
+        self.mask_token = nn.Parameter(torch.zeros(1, embed_dim)) if mask_token else None
+        self.blocks = nn.ModuleList(
+            Block(embed_dim, num_heads, mlp_ratio, qkv_bias, norm_eps, layer_scale) for _ in range(depth)
+        )
         self.norm = nn.LayerNorm(embed_dim, eps=norm_eps)
         self.initialize_weights()
 
