@@ -39,3 +39,26 @@ def test_video_decoder_paper_reads_the_paper_tokenizer() -> None:
     assert decoder.frames == 7 and decoder.image_size == (288, 512) and decoder.token_grid == (18, 32)
     assert decoder.vocab_size == tokenizer.codebook_size
     assert decoder.downsampling == (tokenizer.downsampling, tokenizer.downsampling)
+
+
+def test_gaia2_video_tokenizer_paper_preset() -> None:
+    """GAIA-2 report, tokenizer: encoder ≈ 85M and a larger decoder ≈ 200M; 448×960 → 14×30 per step, 8 frames per step, 64 channels,
+    3 latent steps (24 frames) decoded together."""
+    cfg = OmegaConf.load(CONF_DIR / "model" / "net" / "gaia2_video_tokenizer_paper.yaml")
+    with torch.device("meta"):
+        net = instantiate(cfg)()
+    encoder = sum(p.numel() for p in net.encoder.parameters())
+    decoder = sum(p.numel() for p in net.decoder.parameters())
+    assert encoder == pytest.approx(85e6, rel=0.10), f"encoder {encoder / 1e6:.1f}M"
+    assert decoder == pytest.approx(200e6, rel=0.10), f"decoder {decoder / 1e6:.1f}M"
+    assert net.latent_shape(24, 448, 960) == (3, 64, 14, 30) and net.chunk_latents == 3
+
+
+def test_gaia2_world_model_paper_preset() -> None:
+    """GAIA-2 report, world model: 22 layers, ≈ 8.4B parameters."""
+    cfg = OmegaConf.load(CONF_DIR / "model" / "net" / "gaia2_world_model_paper.yaml")
+    with torch.device("meta"):
+        net = instantiate(cfg)()
+    count = sum(p.numel() for p in net.parameters())
+    assert len(net.blocks) == 22
+    assert count == pytest.approx(8.4e9, rel=0.10), f"{count / 1e9:.2f}B parameters"

@@ -16,6 +16,16 @@ from torch import nn
 from gaia_app.nn.conv import group_norm
 
 
+def dcgan_init(module: nn.Module) -> None:
+    """N(0, 0.02) convolutions and N(1, 0.02) norm scales (DCGAN/pix2pix init)."""
+    for m in module.modules():
+        if isinstance(m, (nn.Conv2d, nn.Conv3d)):
+            nn.init.normal_(m.weight, 0.0, 0.02)
+        elif isinstance(m, nn.GroupNorm):
+            nn.init.normal_(m.weight, 1.0, 0.02)
+            nn.init.zeros_(m.bias)
+
+
 class PatchDiscriminator(nn.Module):
     """Fully convolutional real/fake classifier: (b, 3, H, W) → logits (b, 1, h, w), one per patch.
 
@@ -43,13 +53,7 @@ class PatchDiscriminator(nn.Module):
         self.initialize_weights()
 
     def initialize_weights(self) -> None:
-        """N(0, 0.02) convolutions and N(1, 0.02) norm scales (DCGAN/pix2pix init)."""
-        for m in self.modules():
-            if isinstance(m, nn.Conv2d):
-                nn.init.normal_(m.weight, 0.0, 0.02)
-            elif isinstance(m, nn.GroupNorm):
-                nn.init.normal_(m.weight, 1.0, 0.02)
-                nn.init.zeros_(m.bias)
+        dcgan_init(self)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x: (b, 3, H, W) in [-1, 1] → (b, 1, h, w) logits."""
@@ -83,3 +87,44 @@ def adaptive_gan_weight(
     gan_grad = torch.autograd.grad(gan_loss, last_layer, retain_graph=True)[0]
     weight = rec_grad.norm() / (gan_grad.norm() + eps)
     return weight.clamp(0.0, max_weight).detach()
+
+
+class PatchDiscriminator3d(nn.Module):
+    """Spatio-temporal PatchGAN for video: (b, 3, t, H, W) → logits (b, 1, t', h, w), one per space-time patch.
+
+    The GAN stage of the GAIA-2 tokenizer fine-tunes the decoder against "a 3D convolutional
+    discriminator" (GAIA-2 report, tokenizer): 3-D kernels see motion, so flicker between decoded frames is
+    penalised, not only per-frame blur. Layout of PatchDiscriminator with 4×4×4 kernels; the first
+    `temporal_layers` stride-2 layers also halve time, the others stride (1, 2, 2).
+
+    Args:
+        channels, num_layers, in_channels: as PatchDiscriminator.
+        temporal_layers: how many of the stride-2 layers downsample time too.
+    """
+
+    def __init__(self, channels: int = 64, num_layers: int = 3, in_channels: int = 3, temporal_layers: int = 1):
+        super().__init__()
+        widths = [channels * min(2**i, 8) for i in range(num_layers + 1)]
+
+        def stride(i: int) -> tuple[int, int, int]:
+            if i >= num_layers:
+                return (1, 1, 1)
+            return (2 if i < temporal_layers else 1, 2, 2)
+
+        layers: list[nn.Module] = [nn.Conv3d(in_channels, widths[0], 4, stride=stride(0), padding=(2, 1, 1)),
+                                   nn.LeakyReLU(0.2)]
+        for i in range(1, num_layers + 1):
+            layers += [nn.Conv3d(widths[i - 1], widths[i], (3, 4, 4), stride=stride(i), padding=1, bias=False),
+                       group_norm(widths[i]), nn.LeakyReLU(0.2)]
+        layers.append(nn.Conv3d(widths[-1], 1, (3, 4, 4), stride=1, padding=1))
+        self.layers = nn.Sequential(*layers)
+        self.initialize_weights()
+
+    def initialize_weights(self) -> None:
+        dcgan_init(self)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """x: (b, 3, t, H, W) in [-1, 1] → (b, 1, t', h, w) logits."""
+        if x.ndim != 5:
+            raise ValueError(f"PatchDiscriminator3d expects videos (b, c, t, H, W), got {tuple(x.shape)}")
+        return self.layers(x)

@@ -1,6 +1,7 @@
 """`generate(cfg)`: run trained checkpoints.
 
 mode=reconstruct writes mp4s, tokens, metrics and a .rrd; mode=tokenize writes a token cache for the world model;
+mode=encode writes a GAIA-2 latent cache (multi-camera latents and their conditions) for the latent world model;
 the GAIA-1 rollout modes (video, action, text, text_action, text_only, unconditional) write futures
 (gaia_app/tasks/rollout.py); mode=controllability scores action / text adherence (tasks/controllability.py) and
 mode=evaluate fidelity and motion against real continuations (tasks/evaluate.py).
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -22,13 +24,16 @@ from omegaconf import DictConfig
 from tqdm import tqdm
 
 from gaia_app.data.datasets import fit_to_resolution
+from gaia_app.data.latent_cache import clip_done, write_latent_clip
+from gaia_app.data.token_cache import segment_done, write_segment
 from gaia_app.data.transforms import to_float, to_uint8
 from gaia_app.data.video_io import write_video
 from gaia_app.lit.checkpoint import load_module
 from gaia_app.lit.gaia1_tokenizer import ImageTokenizerModule
-from gaia_app.data.token_cache import segment_done, write_segment
+from gaia_app.lit.gaia2_video_tokenizer import VideoTokenizerModule
 from gaia_app.pipelines.gaia1_tokenizer import (ReconstructionOutput, TokenCachePipeline, TokenizerReconstructionPipeline,
                                                 camera_names, segment_names)
+from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
 from gaia_app.tasks.controllability import controllability
 from gaia_app.tasks.evaluate import evaluate
 from gaia_app.tasks.rollout import ROLLOUT_MODES, rollout
@@ -79,41 +84,68 @@ def reconstruct(cfg: DictConfig, module: ImageTokenizerModule, run_dir: Path) ->
     return results
 
 
-def tokenize_split(clips: Any, pipeline: TokenCachePipeline, out_dir: Path, max_clips: int | None, desc: str) -> dict[str, int]:
-    """Encode the clips of one split into `out_dir`; clips whose every segment is on disk are skipped."""
+def cache_split(clips: Any, out_dir: Path, max_clips: int | None, desc: str, done: Callable[[Any], bool],
+                write: Callable[[Any], None]) -> dict[str, int]:
+    """Write the clips of one split with `write(clip)`; clips for which `done(clip)` holds are skipped (resumable:
+    each cache writes its marker file last and atomically)."""
     counts = {"written": 0, "skipped": 0}
     n = len(clips) if max_clips is None else min(max_clips, len(clips))
     for i in tqdm(range(n), desc=desc):
         clip = clips[i]
-        # resumable: a finished segment's token file exists (written last and atomically)
-        if all(segment_done(out_dir, name) for name in segment_names(clip)):
+        if done(clip):
             counts["skipped"] += 1
             continue
-        for segment in pipeline(clip).segments:
-            write_segment(out_dir, segment)
+        write(clip)
         counts["written"] += 1
     return counts
 
 
-def tokenize(cfg: DictConfig, module: ImageTokenizerModule, run_dir: Path) -> dict[str, Any]:
-    """Encode every clip of `cfg.splits` once into `cfg.out_dir/<split>/` (token_cache.py layout),
-    with timestamps, actions and captions beside the tokens (GAIA-1 §2.2: the world model trains on tokens)."""
+def cache_splits(cfg: DictConfig, name: str, make_writers: Callable[[Any, Path], tuple[Callable, Callable]]) -> dict[str, Any]:
+    """Run `cache_split` over `cfg.splits` of `cfg.data` into `cfg.out_dir/<split>/`; make_writers(datamodule,
+    out_dir) → (done, write)."""
     datamodule = instantiate(cfg.data)
     datamodule.setup("fit")
-    pipeline = TokenCachePipeline(module.tokenizer, datamodule.height, datamodule.width, datamodule.resize_mode,
-                                  cfg.fps, cfg.batch_size)
     splits = {"train": datamodule.train_clips, "val": datamodule.val_clips}
     results: dict[str, Any] = {}
     for split in cfg.splits:
         if split not in splits:
             raise ValueError(f"splits: unknown split '{split}', expected some of {sorted(splits)}")
         out_dir = Path(cfg.out_dir) / split
-        results[split] = {**tokenize_split(splits[split], pipeline, out_dir, cfg.max_clips, f"tokenize {split}"),
+        done, write = make_writers(datamodule, out_dir)
+        results[split] = {**cache_split(splits[split], out_dir, cfg.max_clips, f"{name} {split}", done, write),
                           "out_dir": str(out_dir)}
     return results
 
 
-MODES = {"reconstruct": (ImageTokenizerModule, reconstruct), "tokenize": (ImageTokenizerModule, tokenize)}
+def tokenize(cfg: DictConfig, module: ImageTokenizerModule, run_dir: Path) -> dict[str, Any]:
+    """Encode every clip of `cfg.splits` once into `cfg.out_dir/<split>/` (token_cache.py layout),
+    with timestamps, actions and captions beside the tokens (GAIA-1 §2.2: the world model trains on tokens)."""
+    def writers(datamodule: Any, out_dir: Path) -> tuple[Callable, Callable]:
+        pipeline = TokenCachePipeline(module.tokenizer, datamodule.height, datamodule.width, datamodule.resize_mode,
+                                      cfg.fps, cfg.batch_size)
+
+        def write(clip: Any) -> None:
+            for segment in pipeline(clip).segments:
+                write_segment(out_dir, segment)
+
+        return (lambda clip: all(segment_done(out_dir, name) for name in segment_names(clip))), write
+
+    return cache_splits(cfg, "tokenize", writers)
+
+
+def encode(cfg: DictConfig, module: VideoTokenizerModule, run_dir: Path) -> dict[str, Any]:
+    """Encode every multi-camera clip of `cfg.splits` once into `cfg.out_dir/<split>/` (latent_cache.py layout):
+    GAIA-2 tokenizer latents with every condition beside them, for the latent world model (GAIA-2 report, tokenizer)."""
+    def writers(datamodule: Any, out_dir: Path) -> tuple[Callable, Callable]:
+        pipeline = VideoTokenizerPipeline(module.tokenizer.to(cfg.device), datamodule.height, datamodule.width,
+                                          datamodule.resize_mode, cfg.fps)
+        return (lambda clip: clip_done(out_dir, clip.clip_id)), (lambda clip: write_latent_clip(out_dir, pipeline.encode(clip)))
+
+    return cache_splits(cfg, "encode", writers)
+
+
+MODES = {"reconstruct": (ImageTokenizerModule, reconstruct), "tokenize": (ImageTokenizerModule, tokenize),
+         "encode": (VideoTokenizerModule, encode)}
 
 
 def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:

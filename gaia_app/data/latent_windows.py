@@ -1,0 +1,126 @@
+"""Windows of a latent cache (latent_cache.py) for the GAIA-2 latent world model, with per-step conditions.
+
+Legend: v cameras, t latent steps per window, τ frames per step, C h w latent channels and grid, N agents.
+
+Per-frame labels become per-step ones: actions are averaged over the τ frames of a step, the timestamp
+and agents are those of the step's first frame, the caption that of its middle frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from gaia_app.data.clip import ClipError
+from gaia_app.data.collate import pad_agents
+from gaia_app.data.latent_cache import LatentClip, find_latent_clips, read_latent_clip
+from gaia_app.data.metadata import MetadataEncoder
+
+
+class LatentWindows(Dataset):
+    """Item: `steps` consecutive latent steps of one cached clip (random start when `random_window`).
+
+    Returns {"mean", "logvar": (v, t, C, h, w), "timestamps": (t,), "actions"?: (t, 2), "agents"?: t AgentBoxes,
+    "text"?: str, "intrinsics"/"extrinsics"?: (v, 3, 3)/(v, 4, 4), "image_size": (H, W), "metadata": {field: int},
+    "clip_id"}. Absent labels stay absent.
+    """
+
+    def __init__(self, folders: Sequence[Path], steps: int, metadata: MetadataEncoder, random_window: bool = True):
+        self.clips: list[LatentClip] = [read_latent_clip(f) for f in folders]
+        short = [c.clip_id for c in self.clips if c.mean.shape[1] < steps]
+        if short:
+            raise ClipError(f"latent clips {short[:5]} have fewer than steps={steps} latent steps")
+        self.steps, self.metadata, self.random_window = steps, metadata, random_window
+
+    def __len__(self) -> int:
+        return len(self.clips)
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        clip = self.clips[index]
+        last = clip.mean.shape[1] - self.steps
+        start = int(torch.randint(0, last + 1, ()).item()) if self.random_window and last > 0 else 0
+        tau = clip.temporal_downsampling
+        frames = slice(start * tau, (start + self.steps) * tau)
+        first = np.arange(start, start + self.steps) * tau
+        middle = first[self.steps // 2] + tau // 2
+        sample: dict[str, Any] = {
+            "clip_id": clip.clip_id,
+            "mean": torch.from_numpy(clip.mean[:, start : start + self.steps]),
+            "logvar": torch.from_numpy(clip.logvar[:, start : start + self.steps]),
+            "timestamps": torch.from_numpy(clip.timestamps[first] - clip.timestamps[first[0]]).float(),
+            "image_size": clip.image_size,
+            "metadata": self.metadata.encode(clip.meta, clip.frame_meta[middle] if clip.frame_meta else None),
+        }
+        if clip.actions is not None:
+            sample["actions"] = torch.from_numpy(clip.actions[frames].reshape(self.steps, tau, 2).mean(1))
+        if clip.agents is not None:
+            sample["agents"] = [clip.agents[i] for i in first]
+        if clip.text is not None:
+            sample["text"] = clip.text[middle] or ""
+        if clip.cameras is not None:
+            sample["intrinsics"] = torch.tensor(np.stack([c.intrinsics for c in clip.cameras]), dtype=torch.float32)
+            sample["extrinsics"] = torch.tensor(np.stack([c.extrinsics for c in clip.cameras]), dtype=torch.float32)
+        return sample
+
+
+def collate_latent_windows(samples: list[dict[str, Any]]) -> dict[str, Any]:
+    """Stack windows; a label present in some windows only is an error naming the clips."""
+    batch: dict[str, Any] = {"clip_id": [s["clip_id"] for s in samples], "image_size": samples[0]["image_size"]}
+    sizes = {tuple(s["image_size"]) for s in samples}
+    if len(sizes) > 1:
+        raise ClipError(f"latent batch mixes image sizes {sorted(sizes)}")
+    for key in ("mean", "logvar", "timestamps", "actions", "intrinsics", "extrinsics", "agents", "text"):
+        have = [key in s for s in samples]
+        if not any(have):
+            continue
+        if not all(have):
+            raise ClipError(f"latent batch mixes clips with and without '{key}': missing in "
+                            f"{[s['clip_id'] for s in samples if key not in s]}")
+        values = [s[key] for s in samples]
+        if key == "agents":
+            batch.update(pad_agents(values))
+        elif key == "text":
+            batch["text"] = values
+        else:
+            batch[key] = torch.stack(values)
+    fields = samples[0]["metadata"].keys()
+    batch["metadata"] = {name: torch.tensor([s["metadata"][name] for s in samples]) for name in fields}
+    return batch
+
+
+class LatentCacheDataModule(L.LightningDataModule):
+    """Latent-cache windows for the GAIA-2 world model: `<path>/train` and `<path>/val` from `generate.py mode=encode`.
+
+    Args:
+        path: the cache root (out_dir of mode=encode).
+        steps: latent steps per window. metadata_fields: the model's metadata fields (MetadataEncoder).
+        batch_size, num_workers: loader settings.
+    """
+
+    def __init__(self, path: str, steps: int = 4, metadata_fields: Sequence[str] = (), batch_size: int = 4,
+                 num_workers: int = 0):
+        super().__init__()
+        self.path, self.steps, self.metadata_fields = Path(path), steps, list(metadata_fields)
+        self.batch_size, self.num_workers = batch_size, num_workers
+        self.train_set: LatentWindows | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is not None:
+            return
+        encoder = MetadataEncoder(self.metadata_fields)
+        self.train_set = LatentWindows(find_latent_clips(self.path / "train"), self.steps, encoder, random_window=True)
+        self.val_set = LatentWindows(find_latent_clips(self.path / "val"), self.steps, encoder, random_window=False)
+
+    def train_dataloader(self) -> DataLoader:
+        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, num_workers=self.num_workers,
+                          drop_last=len(self.train_set) >= self.batch_size, collate_fn=collate_latent_windows)
+
+    def val_dataloader(self) -> DataLoader:
+        return DataLoader(self.val_set, batch_size=self.batch_size, num_workers=self.num_workers,
+                          collate_fn=collate_latent_windows)

@@ -1,0 +1,256 @@
+"""Conditioning of the GAIA-2 latent world model: every signal the report lists, each optional and droppable.
+
+Legend: b batch, v cameras, t latent steps, N agents per step, F metadata fields, e embedding widths,
+d model width, m condition tokens per step.
+
+Two routes (GAIA-2 report, world model):
+- AdaLN, per latent step: flow time τ and ego action (speed, curvature) → c (b, t, d);
+- cross-attention, per latent step: agent tokens (3-D boxes projected into each camera: 2-D box, depth,
+  orientation, dimensions, category), one token per metadata field, a text/image (CLIP-like) vector and
+  a free scenario vector → context (b, t, m, d) with a mask. A learned null token is always present, so
+  attention never runs over nothing.
+Geometry is added to the tokens, not attended: each camera's intrinsics and extrinsics through an MLP
+(one network serves any rig and any number of cameras), timestamps as sine-cosine features (variable
+frame rates).
+
+Dropping a condition (absent, or dropped for classifier-free guidance) masks its tokens out, or swaps
+the action for a learned null action, so a dropped condition has exactly no effect.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+
+import torch
+from einops import rearrange
+from torch import nn
+
+from gaia_app.nn.spacetime import sincos_1d
+
+CONDITIONS = ("action", "agents", "metadata", "text", "scenario")
+
+
+@dataclass
+class AgentBoxes3d:
+    """Agents per latent step in the ego frame: centre (b, t, N, 3) m, size (b, t, N, 3) length/width/height m,
+    yaw (b, t, N) rad, category (b, t, N) int, mask (b, t, N) bool (False: padding)."""
+
+    centre: torch.Tensor
+    size: torch.Tensor
+    yaw: torch.Tensor
+    category: torch.Tensor
+    mask: torch.Tensor
+
+
+@dataclass
+class WorldConditions:
+    """Everything the latent world model can condition on; None = absent.
+
+    intrinsics (b, v, 3, 3) and extrinsics (b, v, 4, 4, camera → ego) at `image_size` (H, W) are required:
+    they say which camera each view is. timestamps (b, t) seconds; actions (b, t, 2) speed m/s and
+    curvature 1/m per latent step; metadata {field: (b,) int64 index into that field's vocabulary};
+    text (b, e_text) a CLIP-like embedding; scenario (b, e_scenario) a free embedding vector.
+    `dropped` names conditions to ignore even when present (classifier-free guidance's second pass).
+    """
+
+    intrinsics: torch.Tensor
+    extrinsics: torch.Tensor
+    image_size: tuple[int, int]
+    timestamps: torch.Tensor | None = None
+    actions: torch.Tensor | None = None
+    agents: AgentBoxes3d | None = None
+    metadata: Mapping[str, torch.Tensor] | None = None
+    text: torch.Tensor | None = None
+    scenario: torch.Tensor | None = None
+    dropped: frozenset[str] = field(default_factory=frozenset)
+
+    def without(self, *names: str) -> WorldConditions:
+        """The same conditions with `names` dropped."""
+        unknown = set(names) - set(CONDITIONS)
+        if unknown:
+            raise ValueError(f"unknown conditions {sorted(unknown)}; expected some of {CONDITIONS}")
+        return replace(self, dropped=self.dropped | frozenset(names))
+
+    def active(self, name: str) -> bool:
+        """True when condition `name` is present and not dropped."""
+        value = {"action": self.actions, "agents": self.agents, "metadata": self.metadata, "text": self.text,
+                 "scenario": self.scenario}[name]
+        return value is not None and name not in self.dropped
+
+
+def box_corners(centre: torch.Tensor, size: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+    """(..., 3), (..., 3), (...) → the 8 corners (..., 8, 3) of yawed boxes in the ego frame (z up)."""
+    signs = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=centre.dtype,
+                         device=centre.device) * 0.5
+    local = signs * size[..., None, :]  # (..., 8, 3)
+    cos, sin = yaw.cos()[..., None], yaw.sin()[..., None]
+    x = cos * local[..., 0] - sin * local[..., 1]
+    y = sin * local[..., 0] + cos * local[..., 1]
+    return torch.stack([x, y, local[..., 2]], dim=-1) + centre[..., None, :]
+
+
+def project_boxes(agents: AgentBoxes3d, intrinsics: torch.Tensor, extrinsics: torch.Tensor, image_size: tuple[int, int]
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Project every agent into every camera.
+
+    Returns boxes (b, t, v, N, 4) as (x0, y0, x1, y1) / (W, H) clipped to [0, 1], depth (b, t, v, N) metres
+    along the optical axis, and visible (b, t, v, N): a real agent with a corner in front of the camera
+    and a box overlapping the image.
+    """
+    height, width = image_size
+    corners = box_corners(agents.centre, agents.size, agents.yaw)  # (b, t, N, 8, 3)
+    ego_to_cam = torch.linalg.inv(extrinsics)  # (b, v, 4, 4)
+    rotation, translation = ego_to_cam[..., :3, :3], ego_to_cam[..., :3, 3]
+    cam = torch.einsum("bvij,btnkj->btvnki", rotation, corners) + translation[:, None, :, None, None, :]
+    z = cam[..., 2]
+    in_front = z > 0.1
+    pix = torch.einsum("bvij,btvnkj->btvnki", intrinsics, cam)
+    uv = pix[..., :2] / z.clamp_min(0.1)[..., None]
+    big = torch.finfo(uv.dtype).max
+    lo = torch.where(in_front[..., None], uv, torch.full_like(uv, big)).amin(dim=-2)
+    hi = torch.where(in_front[..., None], uv, torch.full_like(uv, -big)).amax(dim=-2)
+    scale = uv.new_tensor([width, height])
+    lo, hi = (lo / scale), (hi / scale)
+    visible = in_front.any(-1) & (hi > 0).all(-1) & (lo < 1).all(-1) & agents.mask[:, :, None, :]
+    boxes = torch.cat([lo.clamp(0, 1), hi.clamp(0, 1)], dim=-1)
+    depth = torch.where(in_front, z, torch.zeros_like(z)).amax(dim=-1)
+    return torch.where(visible[..., None], boxes, torch.zeros_like(boxes)), depth * visible, visible
+
+
+def fourier(x: torch.Tensor, dim: int, scale: float) -> torch.Tensor:
+    """Sine-cosine features (…, dim) of a scalar tensor (…) multiplied by `scale` (positions in that unit)."""
+    return sincos_1d((x * scale).flatten(), dim).reshape(*x.shape, dim)
+
+
+def mlp(inputs: int, dim: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(inputs, dim), nn.SiLU(), nn.Linear(dim, dim))
+
+
+class WorldConditioner(nn.Module):
+    """Turns WorldConditions into AdaLN vectors, a cross-attention context and geometry embeddings.
+
+    Args:
+        dim: d.
+        metadata_fields: {field: vocabulary size} of categorical metadata (indices from
+            gaia_app.data.metadata), one token per field.
+        text_dim, scenario_dim: widths of the text/image and scenario vectors (0: not used).
+        agent_categories: number of agent categories.
+        dropout: {condition: probability} of dropping it per sample while training (classifier-free
+            guidance; the report: "aggressive" dropout).
+    """
+
+    def __init__(self, dim: int, metadata_fields: Mapping[str, int], text_dim: int = 0, scenario_dim: int = 0,
+                 agent_categories: int = 8, dropout: Mapping[str, float] | None = None):
+        super().__init__()
+        self.dim = dim
+        self.tau = mlp(dim, dim)
+        self.action = mlp(2 * (dim // 2), dim)
+        self.null_action = nn.Parameter(torch.zeros(dim))
+        self.camera = mlp(4 + 12, dim)
+        self.time = mlp(dim, dim)
+        self.agent_geometry = mlp(4 + 1 + 2 + 3, dim)
+        self.agent_category = nn.Embedding(agent_categories, dim)
+        self.agent_camera = mlp(4 + 12, dim)
+        self.metadata_fields = dict(metadata_fields)
+        self.metadata = nn.ModuleDict({name: nn.Embedding(size, dim) for name, size in self.metadata_fields.items()})
+        self.metadata_field = nn.Embedding(max(1, len(self.metadata_fields)), dim)
+        self.text = nn.Linear(text_dim, dim) if text_dim else None
+        self.scenario = nn.Linear(scenario_dim, dim) if scenario_dim else None
+        self.null_token = nn.Parameter(torch.randn(dim) * 0.02)
+        self.dropout = {name: float(p) for name, p in (dropout or {}).items()}
+        unknown = set(self.dropout) - set(CONDITIONS)
+        if unknown:
+            raise ValueError(f"conditioning dropout for unknown conditions {sorted(unknown)}; expected {CONDITIONS}")
+
+    # ---- per-step vectors and geometry -------------------------------------------------------
+
+    def adaln(self, tau: torch.Tensor, cond: WorldConditions, keep: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """c (b, t, d) = MLP(τ) + MLP(action) (or the null action when absent/dropped). tau (b, t)."""
+        c = self.tau(fourier(tau, self.dim, 1000.0))
+        if cond.active("action"):
+            speed, curvature = cond.actions[..., 0], cond.actions[..., 1]
+            feats = torch.cat([fourier(speed, self.dim // 2, 1.0), fourier(curvature, self.dim // 2, 100.0)], dim=-1)
+            action = torch.where(keep["action"][:, None, None], self.action(feats), self.null_action)
+            return c + action
+        return c + self.null_action
+
+    def camera_features(self, cond: WorldConditions) -> torch.Tensor:
+        """(b, v, 16): focal lengths and principal point over the image size, rotation and translation (m)."""
+        height, width = cond.image_size
+        k = cond.intrinsics
+        intr = torch.stack([k[..., 0, 0] / width, k[..., 1, 1] / height, k[..., 0, 2] / width, k[..., 1, 2] / height], -1)
+        extr = torch.cat([cond.extrinsics[..., :3, :3].flatten(-2), cond.extrinsics[..., :3, 3]], dim=-1)
+        return torch.cat([intr, extr], dim=-1)
+
+    def camera_embedding(self, cond: WorldConditions) -> torch.Tensor:
+        """(b, v, d) added to every token of each camera."""
+        return self.camera(self.camera_features(cond))
+
+    def time_embedding(self, cond: WorldConditions, steps: int, device: torch.device) -> torch.Tensor:
+        """(b or 1, t, d) from timestamps in seconds (absent: zeros, the model then relies on step order)."""
+        if cond.timestamps is None:
+            return torch.zeros(1, steps, self.dim, device=device)
+        return self.time(fourier(cond.timestamps - cond.timestamps[:, :1], self.dim, 10.0))
+
+    # ---- cross-attention context ----------------------------------------------------------
+
+    def keep_masks(self, b: int, device: torch.device) -> dict[str, torch.Tensor]:
+        """(b,) bool per condition: False where this sample's condition is dropped (training dropout)."""
+        keep = {}
+        for name in CONDITIONS:
+            p = self.dropout.get(name, 0.0) if self.training else 0.0
+            keep[name] = torch.rand(b, device=device) >= p if p > 0 else torch.ones(b, dtype=torch.bool, device=device)
+        return keep
+
+    def context(self, cond: WorldConditions, b: int, t: int, keep: Mapping[str, torch.Tensor], device: torch.device
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(b, t, m, d) tokens and (b, t, m) mask: null, agents (v·N), metadata (F), text, scenario."""
+        tokens = [self.null_token.expand(b, t, 1, self.dim)]
+        masks = [torch.ones(b, t, 1, dtype=torch.bool, device=device)]
+        if cond.active("agents"):
+            agent_tokens, visible = self.agent_tokens(cond)
+            tokens.append(agent_tokens)
+            masks.append(visible & keep["agents"][:, None, None])
+        if cond.active("metadata"):
+            meta = self.metadata_tokens(cond.metadata, b)
+            tokens.append(meta[:, None].expand(b, t, -1, -1))
+            masks.append((keep["metadata"][:, None, None]).expand(b, t, meta.shape[1]))
+        for name, layer, value in (("text", self.text, cond.text), ("scenario", self.scenario, cond.scenario)):
+            if cond.active(name):
+                if layer is None:
+                    raise ValueError(f"WorldConditions.{name} given, but the model was built with {name}_dim=0")
+                tokens.append(layer(value)[:, None, None].expand(b, t, 1, self.dim))
+                masks.append(keep[name][:, None, None].expand(b, t, 1))
+        return torch.cat(tokens, dim=2), torch.cat(masks, dim=2)
+
+    def agent_tokens(self, cond: WorldConditions) -> tuple[torch.Tensor, torch.Tensor]:
+        """Agents projected into each camera → tokens (b, t, v·N, d) and visibility (b, t, v·N)."""
+        agents = cond.agents
+        boxes, depth, visible = project_boxes(agents, cond.intrinsics, cond.extrinsics, cond.image_size)
+        v = boxes.shape[2]
+        yaw = agents.yaw[:, :, None].expand(-1, -1, v, -1)
+        size = agents.size[:, :, None].expand(-1, -1, v, -1, -1)
+        geometry = torch.cat([boxes, torch.log1p(depth)[..., None], yaw.sin()[..., None], yaw.cos()[..., None],
+                              torch.log1p(size)], dim=-1)
+        tokens = self.agent_geometry(geometry) + self.agent_category(agents.category)[:, :, None]
+        tokens = tokens + self.agent_camera(self.camera_features(cond))[:, None, :, None]
+        return rearrange(tokens, "b t v n d -> b t (v n) d"), rearrange(visible, "b t v n -> b t (v n)")
+
+    def metadata_tokens(self, metadata: Mapping[str, torch.Tensor], b: int) -> torch.Tensor:
+        """(b, F, d): one token per known field present, its value embedding plus a field embedding."""
+        unknown = set(metadata) - set(self.metadata_fields)
+        if unknown:
+            raise ValueError(f"metadata fields {sorted(unknown)} are not in the model's metadata_fields "
+                             f"{sorted(self.metadata_fields)}")
+        tokens = []
+        for i, name in enumerate(sorted(metadata)):
+            index = metadata[name]
+            size = self.metadata_fields[name]
+            if index.shape != (b,) or index.min() < 0 or index.max() >= size:
+                raise ValueError(f"metadata['{name}']: expected (b={b},) indices in [0, {size}), got "
+                                 f"{tuple(index.shape)} in [{int(index.min())}, {int(index.max())}]")
+            field_id = self.metadata_field.weight[list(self.metadata_fields).index(name)]
+            tokens.append(self.metadata[name](index) + field_id)
+        return torch.stack(tokens, dim=1)
+

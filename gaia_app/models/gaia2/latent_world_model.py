@@ -1,0 +1,125 @@
+"""GAIA-2 latent world model: a space-time factorised transformer over multi-camera latents that predicts the
+flow-matching velocity (GAIA-2 report, world model).
+
+Legend:
+    b batch, v cameras, t latent steps, C latent channels, h w latent grid, p patch side,
+    n = v·(h/p)·(w/p) tokens per step (every camera's), d width, m condition tokens per step.
+
+Input latents `b v t C h w` at flow time τ (b, t) — context steps are clean (τ = 1), generated steps
+noisy — and WorldConditions; output the velocity `b v t C h w` (x − ε, gaia_app/diffusion/flow_matching.py).
+
+Spatial attention runs over the tokens of all cameras at one step (so views agree), temporal attention
+over the steps of each token position. Tokens carry a 2-D sine-cosine position within their camera's
+grid, their camera's geometry embedding and their step's timestamp embedding; nothing depends on the
+number of cameras, so a model trained on one rig samples another.
+
+`positions` (optional) selects a subset of the v·(h/p)·(w/p) token positions, identical at every step:
+the network then runs on those tokens only (their embeddings are those of the full grid). Spatially
+selective classifier-free guidance evaluates its second pass this way, on the tokens inside agent boxes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+from einops import rearrange
+from torch import nn
+from torch.utils.checkpoint import checkpoint
+
+from gaia_app.models.gaia2.conditioning import WorldConditioner, WorldConditions
+from gaia_app.nn.spacetime import AdaLNSpaceTimeBlock, sincos_2d
+
+
+class LatentWorldModel(nn.Module):
+    """Velocity network v(x_τ, τ, conditions) over multi-camera latents.
+
+    Args:
+        latent_channels: C of the video tokenizer (paper 64).
+        patch_size: p, latent positions per token side (1: one token per latent position).
+        dim, depth, heads, mlp_ratio: transformer (paper 22 layers, ≈ 8.4B parameters).
+        metadata_fields, text_dim, scenario_dim, agent_categories, condition_dropout: see WorldConditioner.
+        checkpointing: activation checkpointing of the blocks.
+    """
+
+    block_types: tuple[type[nn.Module], ...] = (AdaLNSpaceTimeBlock,)
+
+    def __init__(self, latent_channels: int = 64, patch_size: int = 1, dim: int = 512, depth: int = 8, heads: int = 8,
+                 mlp_ratio: float = 4.0, metadata_fields: Mapping[str, int] | None = None, text_dim: int = 0,
+                 scenario_dim: int = 0, agent_categories: int = 8, condition_dropout: Mapping[str, float] | None = None,
+                 checkpointing: bool = False):
+        super().__init__()
+        self.latent_channels, self.patch, self.dim = latent_channels, patch_size, dim
+        self.patch_in = nn.Linear(latent_channels * patch_size**2, dim)
+        self.conditioner = WorldConditioner(dim, metadata_fields or {}, text_dim, scenario_dim, agent_categories,
+                                            condition_dropout)
+        self.blocks = nn.ModuleList(AdaLNSpaceTimeBlock(dim, heads, dim, mlp_ratio) for _ in range(depth))
+        self.norm_out = nn.LayerNorm(dim, elementwise_affine=False)
+        self.modulation_out = nn.Sequential(nn.SiLU(), nn.Linear(dim, 2 * dim))
+        self.patch_out = nn.Linear(dim, latent_channels * patch_size**2)
+        self.checkpointing = checkpointing
+        self.initialize_weights()
+
+    def initialize_weights(self) -> None:
+        """Xavier linears; zero output projection and output modulation, so the untrained model predicts v = 0
+        (DiT's adaLN-Zero). The blocks zero their own modulations."""
+        for module in self.modules():
+            if isinstance(module, nn.Linear):
+                nn.init.xavier_uniform_(module.weight)
+                if module.bias is not None:
+                    nn.init.zeros_(module.bias)
+        for block in self.blocks:
+            nn.init.zeros_(block.modulation[-1].weight)
+            nn.init.zeros_(block.modulation[-1].bias)
+        for layer in (self.modulation_out[-1], self.patch_out):
+            nn.init.zeros_(layer.weight)
+            nn.init.zeros_(layer.bias)
+
+    def check(self, x: torch.Tensor, tau: torch.Tensor, cond: WorldConditions) -> None:
+        """Raise ValueError naming the tensor whose shape breaks the contract."""
+        if x.ndim != 6 or x.shape[3] != self.latent_channels:
+            raise ValueError(f"LatentWorldModel expects latents (b, v, t, C={self.latent_channels}, h, w); got {tuple(x.shape)}")
+        b, v, t, _, h, w = x.shape
+        if h % self.patch or w % self.patch:
+            raise ValueError(f"latent grid {h}×{w} is not divisible by patch_size={self.patch}")
+        if tau.shape != (b, t):
+            raise ValueError(f"tau: expected (b, t) = ({b}, {t}), got {tuple(tau.shape)}")
+        if cond.intrinsics.shape != (b, v, 3, 3) or cond.extrinsics.shape != (b, v, 4, 4):
+            raise ValueError(f"conditions: intrinsics {tuple(cond.intrinsics.shape)} / extrinsics "
+                             f"{tuple(cond.extrinsics.shape)}, expected ({b}, {v}, 3, 3) / ({b}, {v}, 4, 4)")
+        if cond.actions is not None and cond.actions.shape != (b, t, 2):
+            raise ValueError(f"conditions.actions: expected (b, t, 2) = ({b}, {t}, 2), got {tuple(cond.actions.shape)}")
+
+    def embed(self, x: torch.Tensor, cond: WorldConditions) -> torch.Tensor:
+        """Latents (b, v, t, C, h, w) → tokens (b, t, n, d) with position, camera and time embeddings."""
+        b, v, t, _, h, w = x.shape
+        p = self.patch
+        tokens = self.patch_in(rearrange(x, "b v t c (h p) (w q) -> b t v (h w) (p q c)", p=p, q=p))
+        space = sincos_2d(h // p, w // p, self.dim, x.device).to(tokens.dtype)
+        camera = self.conditioner.camera_embedding(cond)[:, None, :, None]  # (b, 1, v, 1, d)
+        time = self.conditioner.time_embedding(cond, t, x.device)[:, :, None, None]  # (b, t, 1, 1, d)
+        return rearrange(tokens + space + camera + time, "b t v n d -> b t (v n) d")
+
+    def forward(self, x: torch.Tensor, tau: torch.Tensor, cond: WorldConditions,
+                positions: torch.Tensor | None = None) -> torch.Tensor:
+        """x (b, v, t, C, h, w), τ (b, t) → velocity (b, v, t, C, h, w); with `positions` (k,) indices into
+        the n = v·(h/p)·(w/p) token positions, only those tokens are computed: → (b, t, k, C·p²)."""
+        self.check(x, tau, cond)
+        b, v, t, _, h, w = x.shape
+        tokens = self.embed(x, cond)
+        if positions is not None:
+            tokens = tokens[:, :, positions]
+        keep = self.conditioner.keep_masks(b, x.device)
+        c = self.conditioner.adaln(tau, cond, keep)
+        context, mask = self.conditioner.context(cond, b, t, keep, x.device)
+        for block in self.blocks:
+            if self.checkpointing and self.training:
+                tokens = checkpoint(block, tokens, c, context, mask, use_reentrant=False)
+            else:
+                tokens = block(tokens, c, context, mask)
+        shift, scale = self.modulation_out(c).chunk(2, dim=-1)
+        out = self.patch_out(self.norm_out(tokens) * (1 + scale[:, :, None]) + shift[:, :, None])
+        if positions is not None:
+            return out
+        p = self.patch
+        return rearrange(out, "b t (v h w) (p q c) -> b v t c (h p) (w q)", v=v, h=h // p, p=p, q=p)

@@ -1,0 +1,151 @@
+"""GAIA-2 video tokenizer training (GAIA-2 report, tokenizer): stage 1 learns, stage 2 fine-tunes only the decoder with a 3-D GAN."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+import torch.nn.functional as F
+from torch.utils.data import DataLoader, Dataset
+
+from gaia_app.encoders import load_vision_teacher
+from gaia_app.lit.gaia2_video_tokenizer import VideoTokenizerModule, latent_mosaic
+from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer
+from gaia_app.nn.discriminator import PatchDiscriminator3d
+from gaia_app.nn.vit import VisionTransformer
+
+VIT = dict(embed_dim=24, depth=1, num_heads=2)
+TINY_NET = functools.partial(VideoTokenizer, spatial_downsampling=8, temporal_downsampling=4, latent_channels=8,
+                             chunk_latents=2, conv_mults=(), encoder_dim=48, encoder_depth=1,
+                             encoder_heads=2, decoder_dim=64, decoder_depth=2, decoder_heads=2, distill_dim=VIT["embed_dim"])
+TINY_DISC = functools.partial(PatchDiscriminator3d, channels=8, num_layers=2)
+
+
+class FixedClips(Dataset):
+    """The same two smooth 2-camera clips of 8 frames at 32×64 forever: a slowly panning low-resolution pattern."""
+
+    def __init__(self) -> None:
+        low = torch.rand(2, 2, 3, 4, 12, generator=torch.Generator().manual_seed(0)) * 2 - 1
+        wide = F.interpolate(low.flatten(0, 1), size=(32, 96), mode="bilinear", align_corners=False)
+        wide = wide.unflatten(0, (2, 2))  # (clip, v, 3, 32, 96)
+        self.clips = torch.stack([wide[..., 4 * k : 4 * k + 64] for k in range(8)], dim=2)  # (clip, v, T, 3, 32, 64)
+
+    def __len__(self) -> int:
+        return 1_000_000
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        return {"video": self.clips[i % 2]}
+
+
+class RecordSteps(L.Callback):
+    def __init__(self) -> None:
+        self.terms: list[dict[str, float]] = []
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        self.terms.append({k: float(v) for k, v in outputs.items()})
+
+
+def make_module(**kw) -> VideoTokenizerModule:
+    torch.manual_seed(0)
+    args = dict(net=TINY_NET, optim=functools.partial(torch.optim.AdamW, lr=2e-3, weight_decay=0.0), discriminator=TINY_DISC)
+    return VideoTokenizerModule(**{**args, **kw})
+
+
+def fit(module: VideoTokenizerModule, steps: int, **trainer_kw) -> tuple[L.Trainer, RecordSteps]:
+    record = RecordSteps()
+    trainer = L.Trainer(max_steps=steps, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, callbacks=[record], **trainer_kw)
+    trainer.fit(module, DataLoader(FixedClips(), batch_size=2))
+    return trainer, record
+
+
+def snapshot(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in module.state_dict().items()}
+
+
+def changed(before: dict[str, torch.Tensor], after: torch.nn.Module) -> set[str]:
+    return {k for k, v in after.state_dict().items() if not torch.equal(before[k], v)}
+
+
+def test_stage_one_learns_a_fixed_batch() -> None:
+    """Overfitting two clips: the reconstruction loss (L1 + L2) falls at least 5× in 100 steps."""
+    module = make_module(optim=functools.partial(torch.optim.AdamW, lr=3e-3, weight_decay=0.0))
+    _, record = fit(module, 100)
+    first = record.terms[0]["l1"] + record.terms[0]["l2"]
+    last = sum(t["l1"] + t["l2"] for t in record.terms[-10:]) / 10
+    assert last < first / 5, f"reconstruction loss {first:.3f} → {last:.3f}"
+    assert "gan" not in record.terms[-1] and "kl" in record.terms[-1]
+    assert module.discriminator is None  # stage 1 builds no discriminator
+
+
+def test_stage_two_updates_only_the_decoder_and_the_discriminator(tmp_path: Path) -> None:
+    stage1 = make_module()
+    trainer, _ = fit(stage1, 2)
+    ckpt = tmp_path / "stage1.ckpt"
+    trainer.save_checkpoint(ckpt)
+
+    module = make_module(stage="gan", init_from=str(ckpt))
+    module.configure_model()
+    module.load_init_weights()
+    torch.testing.assert_close(module.net.state_dict(), stage1.net.state_dict())  # starts from stage 1
+    net_before, disc_before = snapshot(module.net), snapshot(module.discriminator)
+    _, record = fit(module, 3)  # fit loads init_from again at fit start: the same weights
+    moved = changed(net_before, module.net)
+    assert moved and all(k.startswith("decoder.") for k in moved), sorted(moved)[:5]
+    assert len(moved) == len(module.net.decoder.state_dict())  # every decoder tensor trained
+    assert changed(disc_before, module.discriminator)
+    assert {"gan", "disc_loss", "adaptive_weight"} <= set(record.terms[-1]) and "kl" not in record.terms[-1]
+
+
+def test_stage_two_optimises_decoder_parameters_only() -> None:
+    module = make_module(stage="gan")
+    module.configure_model()
+    generator = {id(p) for p in module.generator_parameters()}
+    assert generator == {id(p) for p in module.net.decoder.parameters()}
+    assert not any(p.requires_grad for p in module.net.encoder.parameters())
+
+
+def test_dinov2_distillation_of_the_latents(tmp_path: Path) -> None:
+    """With a (small, random) DINOv2-layout teacher the distillation term is on and trains the projection."""
+    torch.manual_seed(0)
+    torch.save(VisionTransformer(patch_size=14, layer_scale=True, mask_token=True, image_size=518, **VIT).state_dict(),
+               tmp_path / "dinov2.pth")
+    teacher = functools.partial(load_vision_teacher, kind="dinov2_vits14", checkpoint=tmp_path / "dinov2.pth", **VIT)
+    module = make_module(dino=teacher)
+    head_before = module.tokenizer.distill_head.weight.detach().clone()
+    _, record = fit(module, 2)
+    assert record.terms[0]["dino"] > 0
+    assert not torch.equal(head_before, module.tokenizer.distill_head.weight)
+    assert "dino" not in module.state_dict().__repr__()  # the teacher stays out of the checkpoint
+
+
+def test_step_frames_are_the_middle_frame_of_each_latent_step() -> None:
+    module = make_module()
+    clip = torch.arange(8.0).view(1, 1, 8, 1, 1, 1).expand(1, 1, 8, 3, 2, 2)
+    assert module.step_frames(clip)[:, 0, 0, 0].tolist() == [2.0, 6.0]
+
+
+def test_unknown_stage_and_missing_init_checkpoint_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="model.stage='decoder'"):
+        make_module(stage="decoder")
+    module = make_module(stage="gan", init_from=str(tmp_path / "missing.ckpt"))
+    with pytest.raises(FileNotFoundError, match="model.init_from=.*missing.ckpt"):
+        fit(module, 1)
+
+
+def test_media_shows_input_over_reconstruction_per_camera_and_latent_channels() -> None:
+    module = make_module()
+    media = module.media({"video": FixedClips().clips})
+    assert media["val/input_over_reconstruction"].shape == (1, 2, 8, 3, 64, 64)
+    torch.testing.assert_close(media["val/input_over_reconstruction"][..., :32, :], FixedClips().clips[:1])
+    assert media["val/latent_channels"].shape == (2, 1, 4 * 1, 8 * 8)  # 2 steps, 8 channels in one row of 4×8 tiles
+
+
+def test_latent_mosaic_pads_to_whole_rows() -> None:
+    mosaic = latent_mosaic(torch.randn(3, 10, 2, 5), columns=4)
+    assert mosaic.shape == (3, 1, 3 * 2, 4 * 5)
+    assert mosaic[:, :, 4:, 10:].abs().max() == 0  # channels 11 and 12 of the 12 tiles are padding
+    assert mosaic.abs().max() <= 1

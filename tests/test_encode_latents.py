@@ -1,0 +1,111 @@
+"""generate.py mode=encode: a trained GAIA-2 video tokenizer writes a resumable, atomic latent cache of
+multi-camera clips with every condition beside the latents (GAIA-2 report, tokenizer: the world model trains on latents)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra.utils import instantiate
+
+import gaia_app.utils.run_dir as run_dir_module
+from gaia_app.data.latent_cache import find_latent_clips, read_latent_clip
+from gaia_app.data.transforms import to_float
+from gaia_app.lit.checkpoint import load_module
+from gaia_app.tasks.generate import generate
+from gaia_app.tasks.train import train
+from tests.conftest import compose_config
+
+TINY = ["experiment=gaia2/video_tokenizer_tiny", "trainer=tiny", "data=synthetic_rig_tiny", "extras.print_config=false"]
+# 8 train + 2 val 3-camera clips of 10 frames at 12.5 Hz: 2 whole latent steps of τ = 4 each
+ENCODE = ["mode=encode", "data=synthetic_rig_tiny", "extras.print_config=false"]
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("g2tok_run")
+    train(compose_config("train", [*TINY, "trainer.max_steps=2", "logger=csv"], run_dir))
+    return run_dir / "checkpoints" / "last.ckpt"
+
+
+def run_encode(ckpt: Path, run_dir: Path, out_dir: Path, *extra: str) -> dict:
+    cfg = compose_config("generate", [*ENCODE, f"ckpt={ckpt}", f"out_dir={out_dir}", *extra], run_dir)
+    return generate(cfg)["results"]
+
+
+def test_encode_writes_latents_with_every_condition(ckpt: Path, tmp_path: Path) -> None:
+    out = tmp_path / "latents"
+    results = run_encode(ckpt, tmp_path / "g1", out)
+    assert results["train"]["written"] == 8 and results["val"]["written"] == 2
+    folders = find_latent_clips(out / "train")
+    assert len(folders) == 8
+    clip = read_latent_clip(folders[0])
+    assert clip.mean.shape == (3, 2, 16, 8, 14)  # (v, t, C, h, w): 3 cameras, 8 of 10 frames → 2 steps, 64×112 / 8
+    assert np.load(folders[0] / "mean.npy").dtype == np.float16
+    assert clip.timestamps.shape == (8,) and np.allclose(np.diff(clip.timestamps), 1 / 12.5)
+    assert clip.actions.shape == (8, 2) and len(clip.text) == 8 and len(clip.agents) == 8
+    assert [c.name for c in clip.cameras] == ["front", "front_left", "front_right"]
+    assert all((c.width, c.height) == (112, 64) for c in clip.cameras)
+    assert clip.image_size == (64, 112) and clip.temporal_downsampling == 4 and clip.fps == pytest.approx(12.5)
+    assert {"weather", "time_of_day"} <= set(clip.meta)
+
+
+def test_cached_latents_are_the_tokenizers_posterior(ckpt: Path, tmp_path: Path) -> None:
+    """The cache holds the encoder's mean and log-variance of the clip (to float16 precision)."""
+    out = tmp_path / "latents"
+    cfg = compose_config("generate", [*ENCODE, f"ckpt={ckpt}", f"out_dir={out}", "splits=[val]"], tmp_path / "g1")
+    generate(cfg)
+    datamodule = instantiate(cfg.data)
+    datamodule.setup("fit")
+    source = datamodule.val_clips[0]
+    clip = read_latent_clip(out / "val" / source.clip_id)
+    video = to_float(torch.from_numpy(source.frames[:, :8]))  # the first 2 whole latent steps of 10 frames
+    with torch.no_grad():
+        posterior = load_module(ckpt).tokenizer.encode(video[None])
+    np.testing.assert_allclose(clip.mean, posterior.mean[0].numpy(), atol=2e-2, rtol=1e-2)
+    np.testing.assert_allclose(clip.logvar, posterior.logvar[0].numpy(), atol=2e-2, rtol=1e-2)
+
+
+def test_encode_resumes_and_skips_finished_clips(ckpt: Path, tmp_path: Path) -> None:
+    out = tmp_path / "latents"
+    run_encode(ckpt, tmp_path / "g1", out, "max_clips=3", "splits=[train]")
+    first = {p: p.stat().st_mtime_ns for p in (out / "train").rglob("*.npy")}
+    results = run_encode(ckpt, tmp_path / "g2", out, "splits=[train]")
+    assert results["train"] == {"written": 5, "skipped": 3, "out_dir": str(out / "train")}
+    assert all(p.stat().st_mtime_ns == t for p, t in first.items())
+
+
+def test_interrupted_write_leaves_an_unfinished_clip_that_is_redone(ckpt: Path, tmp_path: Path, monkeypatch) -> None:
+    out = tmp_path / "latents"
+    real_save = np.save
+    calls = {"n": 0}
+
+    def save_then_die(f, array):
+        calls["n"] += 1
+        if calls["n"] == 3:  # the first clip's log-variance: half-written, then the process "dies"
+            f.write(b"\x93NUMPY partial")
+            raise KeyboardInterrupt
+        real_save(f, array)
+
+    monkeypatch.setattr(run_dir_module.np, "save", save_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        run_encode(ckpt, tmp_path / "g1", out, "splits=[train]")
+    monkeypatch.undo()
+    clip_dir = next((out / "train").iterdir())
+    assert not (clip_dir / "mean.npy").exists() and not (clip_dir / "logvar.npy").exists()
+    assert not [p for p in clip_dir.iterdir() if p.name.startswith(".") or p.suffix == ".tmp"]
+    with pytest.raises(Exception, match="no finished clip folders"):
+        find_latent_clips(out / "train")
+    results = run_encode(ckpt, tmp_path / "g2", out, "splits=[train]")
+    assert results["train"]["written"] == 8
+    read_latent_clip(clip_dir)
+
+
+def test_encode_needs_a_gaia2_tokenizer_checkpoint(tmp_path: Path) -> None:
+    tok_dir = tmp_path / "g1tok"
+    train(compose_config("train", ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "data=synthetic_frames_tiny",
+                                   "extras.print_config=false", "trainer.max_steps=1", "logger=csv"], tok_dir))
+    with pytest.raises(TypeError, match="mode=encode needs a VideoTokenizerModule checkpoint"):
+        run_encode(tok_dir / "checkpoints" / "last.ckpt", tmp_path / "g", tmp_path / "latents")

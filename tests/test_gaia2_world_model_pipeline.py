@@ -1,0 +1,75 @@
+"""GAIA-2 inference modes and guidance on a small untrained (perturbed) latent world model."""
+
+from __future__ import annotations
+
+import torch
+from einops import rearrange
+
+from gaia_app.diffusion.flow_matching import FlowSampler
+from gaia_app.pipelines.gaia2_world_model import Guidance, LatentWorldModelPipeline, agent_token_positions, with_window
+from tests.models.test_gaia2_latent_world_model import conditions, model
+
+SHAPE = (1, 3, 3, 8, 8, 14)
+
+
+def pipeline(guidance: Guidance | None = None, steps: int = 4) -> LatentWorldModelPipeline:
+    return LatentWorldModelPipeline(model(), FlowSampler(steps=steps, schedule="uniform"), guidance)
+
+
+def test_from_scratch_shapes_and_determinism() -> None:
+    pipe = pipeline()
+    a = pipe.from_scratch(SHAPE, conditions(), torch.Generator().manual_seed(0))
+    b = pipe.from_scratch(SHAPE, conditions(), torch.Generator().manual_seed(0))
+    assert a.shape == SHAPE and torch.equal(a, b)
+    assert pipe.counter.calls == [3 * 3 * 112] * 8  # 4 solver steps × 2 runs; 3 latent steps × 3 cameras × 8×14
+
+
+def test_rollout_keeps_the_context_and_takes_new_controls_per_chunk() -> None:
+    pipe = pipeline()
+    context = torch.randn(1, 3, 1, 8, 8, 14)
+    chunks = [with_window(conditions(t=3, seed=s), slice(0, 3)) for s in (1, 2)]
+    out = pipe.rollout(context, chunks, chunk_steps=2, generator=torch.Generator().manual_seed(0))
+    assert out.shape == (1, 3, 5, 8, 8, 14)
+    assert torch.equal(out[:, :, :1], context)
+    same_controls = pipe.rollout(context, [chunks[0], chunks[0]], chunk_steps=2, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(out[:, :, :3], same_controls[:, :, :3]) and not torch.equal(out[:, :, 3:], same_controls[:, :, 3:])
+
+
+def test_inpainting_keeps_everything_outside_the_mask() -> None:
+    pipe = pipeline()
+    real = torch.randn(SHAPE)
+    mask = torch.zeros(1, 3, 3, 8, 14, dtype=torch.bool)
+    mask[:, 0, :, 2:6, 4:10] = True
+    out = pipe.inpaint(real, mask, conditions(), torch.Generator().manual_seed(0))
+    keep = ~mask[:, :, :, None].expand_as(real)
+    assert torch.equal(out[keep], real[keep]) and not torch.allclose(out[~keep], real[~keep])
+
+
+def test_scene_editing_strength() -> None:
+    pipe = pipeline(steps=10)
+    real = torch.randn(SHAPE)
+    unchanged = pipe.edit(real, conditions(), strength=0.0, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(unchanged, real)
+    edited = pipe.edit(real, conditions(seed=3), strength=0.5, generator=torch.Generator().manual_seed(0))
+    assert edited.shape == SHAPE and not torch.allclose(edited, real)
+    assert len(pipe.counter.calls) == 5  # only the last half of the 10 steps runs
+
+
+def test_spatially_selective_guidance_touches_only_agent_tokens_and_costs_less() -> None:
+    cond = conditions()
+    selected = agent_token_positions(cond, (8, 14), 1)
+    assert 0 < selected.numel() < 3 * 112
+    noise = torch.randn(SHAPE)
+    x = {}
+    counts = {}
+    for name, guidance in {"none": Guidance(), "full": Guidance(scale=4.0), "spatial": Guidance(scale=4.0, spatial=True)}.items():
+        pipe = pipeline(guidance)
+        x[name] = pipe.velocity(noise, torch.full((1, 3), 0.5), cond)
+        counts[name] = pipe.counter.tokens
+    outside = torch.ones(3 * 8 * 14, dtype=torch.bool)
+    outside[selected] = False
+    flat = {k: rearrange(v[0], "v t c h w -> t (v h w) c") for k, v in x.items()}
+    assert torch.equal(flat["spatial"][:, outside], flat["none"][:, outside])
+    assert not torch.allclose(flat["spatial"][:, ~outside], flat["none"][:, ~outside])
+    assert counts["none"] < counts["spatial"] < counts["full"] == 2 * counts["none"]
+    assert counts["spatial"] == counts["none"] + 3 * selected.numel()
