@@ -1,12 +1,13 @@
 """Rate–distortion of the GAIA-2 video tokenizer next to the GAIA-1 image tokenizer, on the same held-out clips.
 
-    python benchmarks/rate_distortion.py --gaia2-ckpt RUN2/checkpoints/last.ckpt --gaia1-ckpt RUN1/checkpoints/last.ckpt
+    python benchmarks/rate_distortion.py --gaia2-ckpt RUN2/checkpoints/last.ckpt [GAN_RUN/checkpoints/last.ckpt] \
+        --gaia1-ckpt RUN1/checkpoints/last.ckpt
 
 Held-out clips: the synthetic world with a seed no training run uses (--seed), the 3-camera front rig,
 at the tokenizers' resolution. Rates are bits per frame pixel (bpp):
 - GAIA-1: h·w tokens of log2(K) bits per frame (fixed-length code), and the same tokens at the
   empirical entropy of their codes on these clips (what an entropy coder would reach).
-- GAIA-2: the posterior means stored at 16 bits (bf16), uniformly quantised to 8/6/4 bits per value
+- GAIA-2: the posterior means stored at 16 bits (bf16), uniformly quantised to 8/4/3/2 bits per value
   (per-channel range over the clips; PSNR decoded from the quantised latents), and the KL to the prior
   (the bits-back rate of the Gaussian channel).
 Distortion: PSNR and SSIM over every frame of every camera. Prints a Markdown table; --out writes it too.
@@ -54,22 +55,22 @@ def quantise(latents: torch.Tensor, bits: int, low: torch.Tensor, high: torch.Te
 
 
 @torch.no_grad()
-def gaia2_rows(tokenizer: VideoTokenizer, clips: torch.Tensor) -> list[tuple[str, float, float, float]]:
+def gaia2_rows(tokenizer: VideoTokenizer, clips: torch.Tensor, label: str) -> list[tuple[str, float, float, float]]:
     posteriors = [tokenizer.encode(clip[None]) for clip in tqdm(clips, desc="GAIA-2 encode")]
     means = torch.cat([p.mean for p in posteriors])
     channels = rearrange(means, "b v t c h w -> c (b v t h w)")
     low, high = channels.min(dim=1).values, channels.max(dim=1).values
     frames, height, width = clips.shape[2], clips.shape[-2], clips.shape[-1]
     rows = []
-    for bits in (16, 8, 6, 4):
+    for bits in (16, 8, 4, 3, 2):
         latents = means.bfloat16().float() if bits == 16 else quantise(means, bits, low, high)
         recon = torch.cat([tokenizer.decode(z[None]) for z in latents])
         p, s = distortion(recon, clips)
-        rows.append((f"GAIA-2 latents, {bits}-bit{' (bf16)' if bits == 16 else ''}", tokenizer.storage_bits_per_pixel(bits), p, s))
+        rows.append((f"{label}, {bits}-bit{' (bf16)' if bits == 16 else ''}", tokenizer.storage_bits_per_pixel(bits), p, s))
     kl = float(np.mean([kl_bits_per_pixel(q, frames, height, width) for q in posteriors]))
     recon = torch.cat([tokenizer.decode(q.mode()) for q in posteriors])
     p, s = distortion(recon, clips)
-    rows.append(("GAIA-2 latents, KL rate (bits-back)", kl, p, s))
+    rows.append((f"{label}, KL rate (bits-back)", kl, p, s))
     return rows
 
 
@@ -96,7 +97,7 @@ def table(rows: list[tuple[str, float, float, float]], header: str) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--gaia2-ckpt", required=True)
+    parser.add_argument("--gaia2-ckpt", required=True, nargs="+", help="one or more GAIA-2 tokenizer checkpoints")
     parser.add_argument("--gaia1-ckpt", default=None, help="GAIA-1 tokenizer at the same resolution (optional)")
     parser.add_argument("--clips", type=int, default=16)
     parser.add_argument("--frames", type=int, default=8, help="frames per clip (a multiple of τ)")
@@ -108,7 +109,9 @@ def main() -> None:
     args = parser.parse_args()
     torch.manual_seed(0)
     clips = held_out_clips(args.clips, args.seed, args.height, args.width, args.frames, args.fps)
-    rows = gaia2_rows(load_module(args.gaia2_ckpt).tokenizer, clips)
+    rows = []
+    for ckpt in args.gaia2_ckpt:
+        rows += gaia2_rows(load_module(ckpt).tokenizer, clips, f"GAIA-2 latents ({Path(ckpt).parent.parent.name})")
     if args.gaia1_ckpt:
         rows += gaia1_rows(load_module(args.gaia1_ckpt).tokenizer, clips)
     header = (f"{args.clips} held-out synthetic clips (seed {args.seed}) × {len(CAMERAS)} cameras × {args.frames} frames "

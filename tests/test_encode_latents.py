@@ -109,3 +109,20 @@ def test_encode_needs_a_gaia2_tokenizer_checkpoint(tmp_path: Path) -> None:
                                    "extras.print_config=false", "trainer.max_steps=1", "logger=csv"], tok_dir))
     with pytest.raises(TypeError, match="mode=encode needs a VideoTokenizerModule checkpoint"):
         run_encode(tok_dir / "checkpoints" / "last.ckpt", tmp_path / "g", tmp_path / "latents")
+
+
+def test_pipeline_reconstructs_whole_latent_steps_of_a_clip() -> None:
+    """10 frames at τ = 4: the first 8 are coded (whole steps); reconstruction = decode(posterior mean), clamped."""
+    from gaia_app.data.synthetic import SyntheticClipDataset
+    from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
+    from tests.models.test_gaia2_video_tokenizer import SMALL, VideoTokenizer
+
+    torch.manual_seed(0)
+    tokenizer = VideoTokenizer(**SMALL)
+    clip = SyntheticClipDataset(num_clips=1, height=64, width=112, cameras=2, clip_len=10, fps=12.5)[0]
+    out = VideoTokenizerPipeline(tokenizer, 32, 64).reconstruct(clip)
+    assert out.video.shape == out.reconstruction.shape == (2, 8, 3, 32, 64)
+    with torch.no_grad():
+        expected = tokenizer.decode(tokenizer.encode(out.video[None]).mean)[0].clamp(-1, 1)
+    torch.testing.assert_close(out.reconstruction, expected)
+    assert out.reconstruction.abs().max() <= 1
