@@ -149,3 +149,12 @@ def test_latent_mosaic_pads_to_whole_rows() -> None:
     assert mosaic.shape == (3, 1, 3 * 2, 4 * 5)
     assert mosaic[:, :, 4:, 10:].abs().max() == 0  # channels 11 and 12 of the 12 tiles are padding
     assert mosaic.abs().max() <= 1
+
+
+def test_evaluation_pair_gives_one_video_per_camera() -> None:
+    """EvaluationCallback (PSNR/SSIM/FVMD/FDD) sees each camera as its own clip: (b·v, T, 3, H, W) pairs."""
+    module = make_module()
+    real, generated = module.evaluation_pair({"video": FixedClips().clips})
+    assert real.shape == generated.shape == (4, 8, 3, 32, 64)
+    torch.testing.assert_close(real[1], FixedClips().clips[0, 1])
+    assert generated.abs().max() <= 1
