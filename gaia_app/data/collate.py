@@ -40,10 +40,10 @@ def pad_agents(per_sample: list[list[AgentBoxes]]) -> dict[str, torch.Tensor]:
     return out
 
 
-def collate_clips(samples: list[dict[str, Any]]) -> dict[str, Any]:
-    """Stack clip samples; a label present in some samples but not others is an error naming the clips."""
-    batch: dict[str, Any] = {"clip_id": [s["clip_id"] for s in samples], "meta": [s["meta"] for s in samples]}
-    for key in (*_STACKED, "text", "agents"):
+def stack_labels(samples: list[dict[str, Any]], keys: tuple[str, ...], batch: dict[str, Any]) -> dict[str, Any]:
+    """Add each of `keys` to `batch`: tensors stacked, "agents" padded, "text" listed; a label present in some
+    samples but not others is an error naming the clips."""
+    for key in keys:
         have = [key in s for s in samples]
         if not any(have):
             continue
@@ -58,6 +58,12 @@ def collate_clips(samples: list[dict[str, Any]]) -> dict[str, Any]:
         else:
             batch[key] = torch.stack(values)
     return batch
+
+
+def collate_clips(samples: list[dict[str, Any]]) -> dict[str, Any]:
+    """Stack clip samples (`stack_labels`)."""
+    batch: dict[str, Any] = {"clip_id": [s["clip_id"] for s in samples], "meta": [s["meta"] for s in samples]}
+    return stack_labels(samples, (*_STACKED, "text", "agents"), batch)
 
 
 def collate_token_windows(samples: list[dict[str, Any]]) -> dict[str, Any]:

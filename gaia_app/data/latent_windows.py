@@ -18,7 +18,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from gaia_app.data.clip import ClipError
-from gaia_app.data.collate import pad_agents
+from gaia_app.data.collate import stack_labels
 from gaia_app.data.latent_cache import LatentClip, find_latent_clips, read_latent_clip
 from gaia_app.data.metadata import MetadataEncoder
 
@@ -75,20 +75,7 @@ def collate_latent_windows(samples: list[dict[str, Any]]) -> dict[str, Any]:
     sizes = {tuple(s["image_size"]) for s in samples}
     if len(sizes) > 1:
         raise ClipError(f"latent batch mixes image sizes {sorted(sizes)}")
-    for key in ("mean", "logvar", "timestamps", "actions", "intrinsics", "extrinsics", "agents", "text"):
-        have = [key in s for s in samples]
-        if not any(have):
-            continue
-        if not all(have):
-            raise ClipError(f"latent batch mixes clips with and without '{key}': missing in "
-                            f"{[s['clip_id'] for s in samples if key not in s]}")
-        values = [s[key] for s in samples]
-        if key == "agents":
-            batch.update(pad_agents(values))
-        elif key == "text":
-            batch["text"] = values
-        else:
-            batch[key] = torch.stack(values)
+    stack_labels(samples, ("mean", "logvar", "timestamps", "actions", "intrinsics", "extrinsics", "agents", "text"), batch)
     fields = samples[0]["metadata"].keys()
     batch["metadata"] = {name: torch.tensor([s["metadata"][name] for s in samples]) for name in fields}
     return batch

@@ -22,6 +22,7 @@ from gaia_app.diffusion.flow_matching import sample_tau, velocity_target
 from gaia_app.lit.base import GaiaModule
 from gaia_app.models.gaia2.conditioning import AgentBoxes3d, WorldConditions
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
+from gaia_app.nn.distributions import DiagonalGaussian
 
 
 def batch_conditions(batch: dict[str, Any], text: torch.Tensor | None = None) -> WorldConditions:
@@ -75,10 +76,8 @@ class LatentWorldModelModule(GaiaModule):
 
     def latents(self, batch: dict[str, Any], sample: bool) -> torch.Tensor:
         """(b, v, t, C, h, w) scaled latents: a posterior sample or the mean."""
-        x = batch["mean"]
-        if sample:
-            x = x + torch.exp(0.5 * batch["logvar"]) * torch.randn_like(x)
-        return x * self.latent_scale
+        posterior = DiagonalGaussian(batch["mean"], batch["logvar"])
+        return (posterior.sample() if sample else posterior.mode()) * self.latent_scale
 
     def text_vector(self, batch: dict[str, Any]) -> torch.Tensor | None:
         """(b, e) mean of the caption's token features, or None without captions or text encoder."""

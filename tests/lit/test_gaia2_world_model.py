@@ -102,11 +102,12 @@ def test_context_steps_are_clean_and_excluded_from_the_loss(cache: Path) -> None
     cond = batch_conditions(batch)
     seen = {}
     module.model.register_forward_pre_hook(lambda m, args: seen.update(x_tau=args[0]))
-    loss = module.flow_loss(x, module.task_taus(3, 3, torch.full((3,), 0.5), torch.tensor([2, 2, 2])), cond,
-                            torch.randn_like(x))
+    noise = torch.randn_like(x)
+    loss = module.flow_loss(x, module.task_taus(3, 3, torch.full((3,), 0.5), torch.tensor([2, 2, 2])), cond, noise)
     torch.testing.assert_close(seen["x_tau"][:, :, :2], x[:, :, :2])  # context steps enter clean
+    torch.testing.assert_close(seen["x_tau"][:, :, 2], 0.5 * x[:, :, 2] + 0.5 * noise[:, :, 2])
     # an untrained model predicts v = 0: the loss is the mean of (x − ε)² over the generated step only
-    assert float(loss) > 0
+    torch.testing.assert_close(loss, (x[:, :, 2] - noise[:, :, 2]).pow(2).mean())
 
 
 def test_context_draws_cover_scratch_and_prediction() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from einops import rearrange
 
 from gaia_app.data.synthetic.rig import build_rig
 from gaia_app.models.gaia2.conditioning import CONDITIONS, AgentBoxes3d, WorldConditions, project_boxes
@@ -113,11 +114,14 @@ def test_spatial_attention_spans_cameras() -> None:
 
 
 def test_token_subset_runs_on_those_tokens_only() -> None:
+    """All positions reproduce the full forward; a subset gives its tokens only, attending among themselves."""
     net, (x, tau), cond = model(), latents(), conditions()
-    positions = torch.tensor([0, 5, 130, 200])
     with torch.no_grad():
-        out = net(x, tau, cond, positions=positions)
-    assert out.shape == (1, 3, 4, 8)
+        full = rearrange(net(x, tau, cond), "b v t c h w -> b t (v h w) c")
+        every = net(x, tau, cond, positions=torch.arange(3 * 8 * 14))
+        subset = net(x, tau, cond, positions=torch.tensor([0, 5, 130, 200]))
+    torch.testing.assert_close(every, full, atol=1e-5, rtol=1e-5)
+    assert subset.shape == (1, 3, 4, 8) and not torch.allclose(subset, full[:, :, [0, 5, 130, 200]])
 
 
 def test_bad_shapes_are_named() -> None:
