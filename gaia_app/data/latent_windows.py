@@ -45,28 +45,36 @@ class LatentWindows(Dataset):
         clip = self.clips[index]
         last = clip.mean.shape[1] - self.steps
         start = int(torch.randint(0, last + 1, ()).item()) if self.random_window and last > 0 else 0
-        tau = clip.temporal_downsampling
-        frames = slice(start * tau, (start + self.steps) * tau)
-        first = np.arange(start, start + self.steps) * tau
-        middle = first[self.steps // 2] + tau // 2
-        sample: dict[str, Any] = {
-            "clip_id": clip.clip_id,
-            "mean": torch.from_numpy(clip.mean[:, start : start + self.steps]),
-            "logvar": torch.from_numpy(clip.logvar[:, start : start + self.steps]),
-            "timestamps": torch.from_numpy(clip.timestamps[first] - clip.timestamps[first[0]]).float(),
-            "image_size": clip.image_size,
-            "metadata": self.metadata.encode(clip.meta, clip.frame_meta[middle] if clip.frame_meta else None),
-        }
-        if clip.actions is not None:
-            sample["actions"] = torch.from_numpy(clip.actions[frames].reshape(self.steps, tau, 2).mean(1))
-        if clip.agents is not None:
-            sample["agents"] = [clip.agents[i] for i in first]
-        if clip.text is not None:
-            sample["text"] = clip.text[middle] or ""
-        if clip.cameras is not None:
-            sample["intrinsics"] = torch.tensor(np.stack([c.intrinsics for c in clip.cameras]), dtype=torch.float32)
-            sample["extrinsics"] = torch.tensor(np.stack([c.extrinsics for c in clip.cameras]), dtype=torch.float32)
-        return sample
+        return latent_window(clip, start, self.steps, self.metadata)
+
+
+def latent_window(clip: LatentClip, start: int, steps: int, metadata: MetadataEncoder) -> dict[str, Any]:
+    """Latent steps start..start+steps-1 of `clip` with their per-step conditions (the `LatentWindows` item)."""
+    if start < 0 or start + steps > clip.mean.shape[1]:
+        raise ClipError(f"latent clip '{clip.clip_id}': steps {start}..{start + steps - 1} requested, "
+                        f"it has {clip.mean.shape[1]} latent steps")
+    tau = clip.temporal_downsampling
+    frames = slice(start * tau, (start + steps) * tau)
+    first = np.arange(start, start + steps) * tau
+    middle = first[steps // 2] + tau // 2
+    sample: dict[str, Any] = {
+        "clip_id": clip.clip_id,
+        "mean": torch.from_numpy(clip.mean[:, start : start + steps]),
+        "logvar": torch.from_numpy(clip.logvar[:, start : start + steps]),
+        "timestamps": torch.from_numpy(clip.timestamps[first] - clip.timestamps[first[0]]).float(),
+        "image_size": clip.image_size,
+        "metadata": metadata.encode(clip.meta, clip.frame_meta[middle] if clip.frame_meta else None),
+    }
+    if clip.actions is not None:
+        sample["actions"] = torch.from_numpy(clip.actions[frames].reshape(steps, tau, 2).mean(1))
+    if clip.agents is not None:
+        sample["agents"] = [clip.agents[i] for i in first]
+    if clip.text is not None:
+        sample["text"] = clip.text[middle] or ""
+    if clip.cameras is not None:
+        sample["intrinsics"] = torch.tensor(np.stack([c.intrinsics for c in clip.cameras]), dtype=torch.float32)
+        sample["extrinsics"] = torch.tensor(np.stack([c.extrinsics for c in clip.cameras]), dtype=torch.float32)
+    return sample
 
 
 def collate_latent_windows(samples: list[dict[str, Any]]) -> dict[str, Any]:

@@ -5,6 +5,8 @@ mode=encode writes a GAIA-2 latent cache (multi-camera latents and their conditi
 the GAIA-1 rollout modes (video, action, text, text_action, text_only, unconditional) write futures
 (gaia_app/tasks/rollout.py); mode=controllability scores action / text adherence (tasks/controllability.py) and
 mode=evaluate fidelity and motion against real continuations (tasks/evaluate.py).
+model=gaia2 runs the GAIA-2 latent world model instead: modes scratch, rollout, inpaint, edit
+(tasks/gaia2_generate.py) and evaluate (agent control and action adherence, tasks/gaia2_evaluate.py).
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ from gaia_app.pipelines.gaia1_tokenizer import (ReconstructionOutput, TokenCache
 from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
 from gaia_app.tasks.controllability import controllability
 from gaia_app.tasks.evaluate import evaluate
+from gaia_app.tasks.gaia2_evaluate import gaia2_evaluate
+from gaia_app.tasks.gaia2_generate import GAIA2_MODES, gaia2_generate
 from gaia_app.tasks.rollout import ROLLOUT_MODES, rollout
 from gaia_app.utils.run_dir import atomic_write_text, save_resolved_config
 from gaia_app.viz.media import log_token_map, to_hwc_uint8
@@ -161,12 +165,27 @@ def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     return run(cfg, module, run_dir)
 
 
+def run_gaia2(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """The GAIA-2 modes: generation (tasks/gaia2_generate.py) and evaluation (tasks/gaia2_evaluate.py)."""
+    if cfg.mode in GAIA2_MODES:
+        return gaia2_generate(cfg, run_dir)
+    if cfg.mode == "evaluate":
+        return gaia2_evaluate(cfg, run_dir)
+    raise ValueError(f"model=gaia2 mode={cfg.mode}: expected one of {list(GAIA2_MODES) + ['evaluate']} "
+                     "(mode=encode runs on a video tokenizer ckpt without model=gaia2)")
+
+
 def generate(cfg: DictConfig) -> dict[str, Any]:
     """Load `cfg.ckpt`, run `cfg.mode`, write results.json in the run dir and return the results."""
     L.seed_everything(cfg.seed, workers=True)
     run_dir = Path(cfg.paths.output_dir)
     save_resolved_config(cfg, run_dir)
-    if cfg.mode in ROLLOUT_MODES:
+    family = cfg.model.get("family")
+    if family not in ("gaia1", "gaia2"):
+        raise ValueError(f"model={cfg.model}: generate.py runs the model families gaia1 or gaia2 (conf/model/gaia*.yaml)")
+    if family == "gaia2":
+        results = run_gaia2(cfg, run_dir)
+    elif cfg.mode in ROLLOUT_MODES:
         results = rollout(cfg, run_dir)
     elif cfg.mode == "controllability":
         results = controllability(cfg, run_dir)

@@ -37,6 +37,9 @@ def resume_path(ckpt_path: str | None, run_dir: Path) -> str | None:
 
 def build(cfg: DictConfig) -> dict[str, Any]:
     """Instantiate datamodule, model, callbacks, loggers and trainer (no fitting)."""
+    if "family" in cfg.model:
+        raise ValueError(f"model={cfg.model.family} is a generation family of generate.py, not a trainable model: "
+                         "train with experiment=gaia1/... or experiment=gaia2/...")
     datamodule = instantiate(cfg.data)
     model = instantiate(cfg.model)
     # the model's own config travels in the checkpoint so generate.py can rebuild it without Hydra

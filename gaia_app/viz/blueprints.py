@@ -10,6 +10,7 @@ Entity paths used across gaia_app (see docs/rerun.md):
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import rerun.blueprint as rrb
 
@@ -50,33 +51,46 @@ def training_blueprint(
     )
 
 
-def rig_blueprint(
+def rig_view(
     camera_names: Sequence[str],
     rig_origin: str = "/world/rig",
     world_origin: str = "/world",
     scalars_origin: str = "/actions",
     text_origin: str = "/text",
     grid_columns: int = 3,
-) -> rrb.Blueprint:
+    name: str | None = None,
+) -> rrb.Vertical:
+    """One clip of a rig: a 2D view per camera in a grid, the 3D world, actions and text (see rig_blueprint)."""
+    cams = [rrb.Spatial2DView(origin=f"{rig_origin}/{c}", name=c) for c in camera_names]
+    return rrb.Vertical(
+        rrb.Grid(*cams, grid_columns=grid_columns),
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin=world_origin, name="world"),
+            rrb.TimeSeriesView(origin=scalars_origin, name="actions"),
+            rrb.TextLogView(origin=text_origin, name="text"),
+        ),
+        row_shares=[3, 2],
+        name=name,
+    )
+
+
+def rig_blueprint(camera_names: Sequence[str], **view_options: Any) -> rrb.Blueprint:
     """Multi-camera rollout: one 2D view per camera in a grid, the 3D world, actions and text.
 
     camera_names: entity names under `rig_origin` (`front` -> /world/rig/front), in display order.
     Frames live on the `frame` timeline; each camera entity carries its Pinhole and extrinsics,
     so the 3D view shows the frusta and the 2D views show images with projected boxes.
+    view_options: rig_view's origins and grid_columns.
     """
-    cams = [rrb.Spatial2DView(origin=f"{rig_origin}/{c}", name=c) for c in camera_names]
-    return rrb.Blueprint(
-        rrb.Vertical(
-            rrb.Grid(*cams, grid_columns=grid_columns),
-            rrb.Horizontal(
-                rrb.Spatial3DView(origin=world_origin, name="world"),
-                rrb.TimeSeriesView(origin=scalars_origin, name="actions"),
-                rrb.TextLogView(origin=text_origin, name="text"),
-            ),
-            row_shares=[3, 2],
-        ),
-        collapse_panels=True,
-    )
+    return rrb.Blueprint(rig_view(camera_names, **view_options), collapse_panels=True)
+
+
+def rig_tabs_blueprint(camera_names: Sequence[str], roots: Sequence[str], grid_columns: int = 3) -> rrb.Blueprint:
+    """Several clips of one rig logged by viz/world.log_world under `roots` (e.g. the real clip and each generated
+    sample): a tab per root, each a camera grid over its 3D world (frusta, agent boxes), actions and text."""
+    tabs = [rig_view(camera_names, f"{root}/ego/rig", root, f"{root}/actions", f"{root}/text", grid_columns,
+                     name=root.strip("/")) for root in roots]
+    return rrb.Blueprint(rrb.Tabs(*tabs), collapse_panels=True)
 
 
 def rollout_blueprint(num_futures: int, has_real: bool, has_actions: bool, has_guidance: bool) -> rrb.Blueprint:

@@ -92,10 +92,11 @@ def _log_boxes_2d(rec: rr.RecordingStream, clip: Clip, t: int, root: str) -> Non
 
 
 def log_world(rec: rr.RecordingStream, clip: Clip, *, root: str = "/world", frame_offset: int = 0,
-              jpeg_quality: int | None = 90, send_blueprint: bool = True) -> None:
+              jpeg_quality: int | None = 90, send_blueprint: bool = True, series_root: str = "") -> None:
     """Log `clip` (frames, rig, agents, ego path, actions, captions) on the `frame` timeline
-    starting at `frame_offset`. jpeg_quality None logs raw images. The `frame` timeline is
-    cleared afterwards so later logs on `rec` do not inherit the last frame."""
+    starting at `frame_offset`. jpeg_quality None logs raw images. Actions and captions go to
+    `{series_root}/actions` and `{series_root}/text` (several clips in one recording: one series_root each).
+    The `frame` timeline is cleared afterwards so later logs on `rec` do not inherit the last frame."""
     names = [c.name for c in clip.cameras] if clip.cameras else [f"view{i}" for i in range(clip.num_views)]
     if send_blueprint:
         rec.send_blueprint(world_blueprint(names, root))
@@ -112,10 +113,10 @@ def log_world(rec: rr.RecordingStream, clip: Clip, *, root: str = "/world", fram
         _log_boxes_2d(rec, clip, t, root)
         _log_agents(rec, clip, t, root)
         if clip.actions is not None:
-            rec.log("/actions/speed", rr.Scalars(float(clip.actions[t, 0])))
-            rec.log("/actions/curvature", rr.Scalars(float(clip.actions[t, 1])))
+            rec.log(f"{series_root}/actions/speed", rr.Scalars(float(clip.actions[t, 0])))
+            rec.log(f"{series_root}/actions/curvature", rr.Scalars(float(clip.actions[t, 1])))
         if clip.text is not None and clip.text[t]:
-            rec.log("/text", rr.TextLog(clip.text[t]))
+            rec.log(f"{series_root}/text", rr.TextLog(clip.text[t]))
     rec.disable_timeline("frame")
 
 

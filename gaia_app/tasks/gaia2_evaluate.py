@@ -1,0 +1,192 @@
+"""`generate.py model=gaia2 mode=evaluate`: agent control and action adherence of the GAIA-2 latent world model on
+held-out synthetic rig scenes (GAIA-2 report, evaluation; docs/latent_world_model.md).
+
+Scenes are clips `0..contexts-1` of the world `context.seed` rendered with the rig of `data` (data=synthetic_rig);
+probes train in the same run on clips of `model.evaluate.probe_seed`.
+
+Agent control (every camera, every frame of model.steps latent steps generated from scratch under the scene's
+conditions): the pooled IoU of a segmentation probe's agent masks with (a) the scene's true agent masks and (b) the
+conditioning boxes projected into each camera, for
+    real frames                 the rendered scene (what the probe reaches on real images)
+    tokenized real              the scene's latents decoded (the ceiling through this tokenizer)
+    model, agent conditions     generated with every condition
+    model, selective CFG ×s     the same with spatially selective guidance on the agents (s = cfg_scale; skipped at 0)
+    model, agents dropped       generated with the agent condition dropped (the floor)
+Action adherence (front camera, GAIA-1's inverse-dynamics probe): model.context_steps clean steps, then
+model.steps − context_steps steps generated under each of `commands` (speed, curvature presets); the mean absolute
+error of the probed actions against the commanded ones, for the model, the model with actions dropped (the floor),
+the real continuation (what happened instead of the command) and, scored against their own logged actions, the real
+and tokenized frames (the probe's and the tokenizer's ceilings).
+Writes gaia2_evaluation.json and gaia2_evaluation.md (both tables) into the run dir.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+from tqdm.auto import tqdm
+
+from gaia_app.data.latent_cache import LatentClip
+from gaia_app.data.synthetic.generate import SyntheticSample
+from gaia_app.data.transforms import to_float
+from gaia_app.eval.agent_iou import agent_iou, train_agent_probe
+from gaia_app.eval.controllability import action_error, probe_clips, train_probes
+from gaia_app.models.gaia2.conditioning import project_boxes
+from gaia_app.pipelines.gaia1_inputs import future_actions
+from gaia_app.pipelines.gaia2 import Gaia2Pipeline, with_labels
+from gaia_app.pipelines.gaia2_world_model import Guidance
+from gaia_app.tasks.gaia2_generate import cut_steps, load_gaia2
+from gaia_app.utils.run_dir import atomic_write_text
+
+
+def rig_samples(cfg: DictConfig, seed: int, count: int, frames: int) -> list[SyntheticSample]:
+    """`count` clips (with their simulation) of the synthetic world `seed` with the rig of `cfg.data`, `frames` long."""
+    if "source" not in cfg.data or "cameras" not in cfg.data.source:
+        raise ValueError("model=gaia2 mode=evaluate renders the rig of `data`: use data=synthetic_rig")
+    world = instantiate(cfg.data.source, num_clips=count, seed=seed, clip_len=frames)
+    return [world.sample(i) for i in range(count)]
+
+
+def agent_masks(sample: SyntheticSample, frames: int) -> torch.Tensor:
+    """(v, T, H, W) bool: any agent visible at each pixel of every camera."""
+    views = range(sample.clip.num_views)
+    return torch.from_numpy(np.stack([np.stack([sample.instance_ids(t, v) >= 0 for t in range(frames)]) for v in views]))
+
+
+def box_masks(cond: Any, frames: int, temporal: int) -> torch.Tensor:
+    """(v, T, H, W) bool: the conditioning agent boxes projected into every camera (a latent step's boxes on its frames)."""
+    height, width = cond.image_size
+    boxes, _, visible = project_boxes(cond.agents, cond.intrinsics, cond.extrinsics, cond.image_size)  # (1, t, v, N, 4)
+    ys = (torch.arange(height) + 0.5) / height
+    xs = (torch.arange(width) + 0.5) / width
+    x0, y0, x1, y1 = (boxes[0, ..., i, None, None].cpu() for i in range(4))  # (t, v, N, 1, 1)
+    inside = (xs > x0) & (xs < x1) & (ys[:, None] > y0) & (ys[:, None] < y1) & visible[0, ..., None, None].cpu()
+    per_step = inside.any(dim=2)  # (t, v, H, W)
+    return per_step.repeat_interleave(temporal, dim=0)[:frames].transpose(0, 1)
+
+
+def train_probes_for(cfg: DictConfig, frames: int) -> tuple[Any, Any, dict[str, Any]]:
+    """The agent segmentation probe (every camera) and the inverse-dynamics probe (front camera) on the probe world."""
+    e = cfg.model.evaluate
+    samples = rig_samples(cfg, e.probe_seed, e.probe_clips, frames)
+    images = torch.cat([to_float(torch.from_numpy(s.clip.frames)) for s in samples])  # (N·v, T, 3, H, W)
+    masks = torch.cat([agent_masks(s, frames) for s in samples])
+    segmentation, agent_fit = train_agent_probe(images, masks, steps=e.probe_steps, seed=cfg.seed)
+    clips = [s.clip for s in samples]
+    dynamics, _, action_fit = train_probes(probe_clips(clips, clips[0].fps, frames), e.probe_steps, seed=cfg.seed)
+    return segmentation, dynamics, {"agent_probe": agent_fit, "action_probe": action_fit}
+
+
+def iou_row(probe: Any, videos: list[torch.Tensor], truth: list[torch.Tensor], boxes: list[torch.Tensor]) -> dict[str, float]:
+    """Pooled IoU of the probe's masks on videos (v, T, 3, H, W) with true agent masks and with the box masks."""
+    frames = torch.stack(videos).flatten(0, 1)
+    return {"iou_agent_masks": agent_iou(probe, frames, torch.stack(truth).flatten(0, 1)),
+            "iou_conditioning_boxes": agent_iou(probe, frames, torch.stack(boxes).flatten(0, 1))}
+
+
+def agent_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
+                probe: Any, generator: torch.Generator) -> dict[str, Any]:
+    """Rows of the agent-control table (module docstring)."""
+    e, steps = cfg.model.evaluate, cfg.model.steps
+    frames = steps * pipeline.temporal
+    rows: dict[str, list[torch.Tensor]] = {"real frames": [], "tokenized real": [], "model, agent conditions": []}
+    if e.cfg_scale:
+        rows[f"model, selective CFG ×{e.cfg_scale:g}"] = []
+    rows["model, agents dropped"] = []
+    truth, boxes = [], []
+    world, plain = pipeline.world, pipeline.world.guidance
+    for sample, clip in tqdm(scenes, desc="agent control"):
+        real, cond = pipeline.window(clip, 0, steps)
+        truth.append(agent_masks(sample, frames))
+        boxes.append(box_masks(cond, frames, pipeline.temporal))
+        rows["real frames"].append(to_float(torch.from_numpy(sample.clip.frames[:, :frames])))
+        rows["tokenized real"].append(pipeline.decode(real)[0].cpu())
+        shape = tuple(real.shape)
+        noise_seed = int(torch.randint(2**31, (), generator=generator))
+        for name, guidance, drop in (("model, agent conditions", plain, ()),
+                                     (f"model, selective CFG ×{e.cfg_scale:g}", Guidance(e.cfg_scale, ("agents",), True), ()),
+                                     ("model, agents dropped", plain, ("agents",))):
+            if name not in rows:
+                continue
+            world.guidance = guidance
+            x = world.from_scratch(shape, cond.without(*drop), torch.Generator(real.device).manual_seed(noise_seed))
+            rows[name].append(pipeline.decode(x)[0].cpu())
+        world.guidance = plain
+    return {"scenes": len(scenes), "latent_steps": steps, "frames": frames,
+            "rows": {name: iou_row(probe, videos, truth, boxes) for name, videos in rows.items()}}
+
+
+def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
+                 probe: Any, generator: torch.Generator) -> dict[str, Any]:
+    """Rows of the action-adherence table (module docstring)."""
+    g = cfg.model
+    c, new, tau = g.context_steps, g.steps - g.context_steps, pipeline.temporal
+    first, frames = c * tau, g.steps * tau
+    scored: dict[str, list[tuple[torch.Tensor, torch.Tensor]]] = {
+        "real frames, own actions": [], "tokenized real, own actions": [], "model, commanded actions": [],
+        "model, actions dropped": [], "real continuation vs the command": []}
+    for sample, clip in tqdm(scenes, desc="action adherence"):
+        own = torch.from_numpy(clip.actions[:frames]).float()
+        real_latents, _ = pipeline.window(clip, 0, g.steps)
+        front = lambda video: video[0].cpu()  # noqa: E731  (the probe reads the first camera, as in training)
+        scored["real frames, own actions"].append((to_float(torch.from_numpy(sample.clip.frames[0, :frames])), own))
+        scored["tokenized real, own actions"].append((front(pipeline.decode(real_latents)[0]), own))
+        for speed, curvature in cfg.model.evaluate.commands:
+            actions = future_actions(speed, curvature, frames - first, clip.fps, float(clip.actions[first - 1, 0]))
+            target = with_labels(clip, first, actions)
+            command = torch.from_numpy(target.actions[:frames]).float()
+            context, _ = pipeline.window(target, 0, c)
+            _, cond = pipeline.window(target, 0, g.steps)
+            noise_seed = int(torch.randint(2**31, (), generator=generator))
+            for name, chunk in (("model, commanded actions", cond), ("model, actions dropped", cond.without("action"))):
+                x = pipeline.world.rollout(context, [chunk], new, torch.Generator(context.device).manual_seed(noise_seed))
+                scored[name].append((front(pipeline.decode(x)[0]), command))
+            scored["real continuation vs the command"].append(
+                (to_float(torch.from_numpy(sample.clip.frames[0, :frames])), command))
+    rows = {name: action_error(probe, torch.stack([v for v, _ in pairs]), torch.stack([a for _, a in pairs]), first + 1)
+            for name, pairs in scored.items()}
+    return {"scenes": len(scenes), "commands": [list(cmd) for cmd in cfg.model.evaluate.commands],
+            "context_frames": first, "scored_frames": frames - first - 1, "rows": rows}
+
+
+def markdown(results: dict[str, Any]) -> str:
+    """The two tables of a GAIA-2 evaluation."""
+    agents = results["agents"]
+    lines = [f"Agent control ({agents['scenes']} held-out scenes × {len(results['cameras'])} cameras × "
+             f"{agents['frames']} frames, generated from scratch)", "",
+             "| frames | IoU with agent masks ↑ | IoU with conditioning boxes ↑ |", "|---|---:|---:|"]
+    lines += [f"| {name} | {row['iou_agent_masks']:.3f} | {row['iou_conditioning_boxes']:.3f} |"
+              for name, row in agents["rows"].items()]
+    actions = results["actions"]
+    lines += ["", f"Action adherence (front camera, {actions['scenes']} scenes × {len(actions['commands'])} commands, "
+              f"{actions['scored_frames']} generated frame pairs each)", "",
+              "| frames | speed MAE (m/s) ↓ | curvature MAE (1/m) ↓ |", "|---|---:|---:|"]
+    lines += [f"| {name} | {row['speed_mae']:.3f} | {row['curvature_mae']:.4f} |" for name, row in actions["rows"].items()]
+    return "\n".join(lines) + "\n"
+
+
+def gaia2_evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """Run the protocol of the module docstring; returns the results (also written to the run dir)."""
+    e = cfg.model.evaluate
+    if e.contexts < 1:
+        raise ValueError(f"model.evaluate.contexts={e.contexts}: expected at least 1")
+    pipeline = load_gaia2(cfg)
+    frames = cfg.model.steps * pipeline.temporal
+    segmentation, dynamics, fit = train_probes_for(cfg, frames)
+    scenes = [(s, cut_steps(pipeline.encode(s.clip), cfg.model.steps))
+              for s in rig_samples(cfg, cfg.context.seed, e.contexts, frames)]
+    generator = torch.Generator().manual_seed(int(cfg.seed))
+    results = {"cameras": [c.name for c in scenes[0][1].cameras], "probe_fit": fit,
+               "agents": agent_table(cfg, pipeline, scenes, segmentation, generator),
+               "actions": action_table(cfg, pipeline, scenes, dynamics, generator)}
+    atomic_write_text(run_dir / "gaia2_evaluation.json", json.dumps(results, indent=2))
+    table = markdown(results)
+    atomic_write_text(run_dir / "gaia2_evaluation.md", table)
+    print(table)  # the tables the command is run for
+    return results

@@ -1,0 +1,178 @@
+"""generate.py model=gaia2: every GAIA-2 inference mode and the evaluation end to end on tiny checkpoints
+(GAIA-2 report, inference and evaluation)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra.utils import instantiate
+from rerun.chunk import RrdReader
+
+from gaia_app.data.clip import AgentBoxes
+from gaia_app.data.latent_cache import find_latent_clips, read_latent_clip
+from gaia_app.pipelines.gaia1_inputs import future_actions
+from gaia_app.pipelines.gaia2 import Gaia2Pipeline, check_metadata, with_labels
+from gaia_app.tasks.gaia2_evaluate import box_masks
+from gaia_app.tasks.gaia2_generate import pixel_boxes
+from gaia_app.tasks.generate import generate
+from gaia_app.tasks.train import train
+from tests.conftest import compose_config
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+RIG = ["data=synthetic_rig_tiny", "extras.print_config=false"]
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory) -> dict[str, Path]:
+    """A tiny video tokenizer (2 steps), its latent cache of 16-frame clips (4 latent steps) and a tiny latent world
+    model (2 steps) on it."""
+    root = tmp_path_factory.mktemp("gaia2")
+    train(compose_config("train", ["experiment=gaia2/video_tokenizer_tiny", "trainer=tiny", *RIG, "trainer.max_steps=2",
+                                   "logger=csv"], root / "tok"))
+    tokenizer = root / "tok" / "checkpoints" / "last.ckpt"
+    generate(compose_config("generate", ["mode=encode", *RIG, f"ckpt={tokenizer}", f"out_dir={root / 'latents'}",
+                                         "data.source.clip_len=16", "data.source.num_clips=4"], root / "enc"))
+    train(compose_config("train", ["experiment=gaia2/world_model_tiny", "trainer=tiny", "trainer.max_steps=2",
+                                   f"data.path={root / 'latents'}", "data.batch_size=2", "logger=csv",
+                                   "extras.print_config=false"], root / "wm"))
+    return {"tokenizer": tokenizer, "world_model": root / "wm" / "checkpoints" / "last.ckpt", "latents": root / "latents"}
+
+
+def run(checkpoints: dict[str, Path], run_dir: Path, mode: str, *extra: str) -> dict:
+    cfg = compose_config("generate", ["model=gaia2", f"mode={mode}", *RIG, f"tokenizer_ckpt={checkpoints['tokenizer']}",
+                                      f"world_model_ckpt={checkpoints['world_model']}", "model.sampler.steps=3",
+                                      "model.sampler.progress=false", "num_futures=1", *extra], run_dir)
+    return generate(cfg)["results"]
+
+
+def recording_rows(path: Path) -> dict[str, int]:
+    rows: dict[str, int] = {}
+    for chunk in RrdReader(str(path)).stream().collect().stream().to_chunks():
+        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+    return rows
+
+
+@pytest.mark.parametrize("mode", ["scratch", "rollout", "inpaint", "edit"])
+def test_every_mode_runs_end_to_end(checkpoints, tmp_path: Path, mode: str) -> None:
+    results = run(checkpoints, tmp_path, mode, "model.chunks=2")
+    steps = 6 if mode == "rollout" else 4  # rollout: 2 context + 2 chunks × 2 new steps
+    assert results["latent_steps"] == steps and results["frames"] == 4 * steps and results["cameras"] == 3
+    assert sorted(results["files"]) == sorted(["sample_0.mp4", "grid.mp4", "rollout.rrd", "latents.npy", "conditioning.json"])
+    assert {p.name for p in tmp_path.iterdir()} >= set(results["files"]) and not list(tmp_path.glob(".rollout-*"))
+    latents = np.load(tmp_path / "latents.npy")
+    assert latents.shape == (1, 3, steps, 16, 8, 14) and latents.dtype == np.float16 and np.isfinite(latents).all()
+    rows = recording_rows(tmp_path / "rollout.rrd")
+    for root in ("/real", "/sample_0"):
+        for camera in ("front", "front_left", "front_right"):
+            assert rows[f"{root}/ego/rig/{camera}"] >= 4 * steps  # frames (+ the static pinhole and pose)
+        assert rows[f"{root}/ego/agents"] == 4 * steps and rows[f"{root}/actions/speed"] == 4 * steps
+        assert f"{root}/ego/rig/front/boxes" in rows and f"{root}/text" in rows
+
+
+def clip_latents(checkpoints: dict[str, Path], frames: int = 16) -> np.ndarray:
+    """(v, t, C, h, w) posterior means of the default context clip (clip 0 of the world context.seed)."""
+    cfg = compose_config("generate", RIG, Path("unused"))
+    world = instantiate(cfg.data.source, num_clips=1, seed=cfg.context.seed, clip_len=frames)
+    pipeline = Gaia2Pipeline.from_checkpoints(checkpoints["tokenizer"], checkpoints["world_model"], 64, 112)
+    return pipeline.encode(world[0]).mean
+
+
+def test_rollout_keeps_the_context_and_follows_commanded_actions(checkpoints, tmp_path: Path) -> None:
+    results = run(checkpoints, tmp_path, "rollout", "model.chunks=1", "speed=brake", "curvature=left")
+    assert results["first_generated_frame"] == 8
+    conditioning = json.loads((tmp_path / "conditioning.json").read_text())
+    actions = np.array(conditioning["actions"])
+    expected = future_actions("brake", "left", 8, 12.5, float(actions[7, 0]))
+    np.testing.assert_allclose(actions[8:], expected, atol=1e-4)
+    latents = np.load(tmp_path / "latents.npy").astype(np.float32)
+    np.testing.assert_allclose(latents[0, :, :2], clip_latents(checkpoints)[:, :2], atol=2e-2)  # float16 on disk
+    assert np.abs(latents[0, :, 2:] - clip_latents(checkpoints)[:, 2:]).max() > 0.1
+
+
+def test_inpainting_a_box_keeps_the_rest_of_the_clip(checkpoints, tmp_path: Path) -> None:
+    run(checkpoints, tmp_path, "inpaint", "model.inpaint.region=box", "model.inpaint.box=[0.5,0.5,1.0,1.0]",
+        "model.inpaint.cameras=[front_left]")
+    latents = np.load(tmp_path / "latents.npy").astype(np.float32)[0]
+    real = clip_latents(checkpoints)
+    # outside the box (front_left, rows ≥ 4 and columns ≥ 7 of the 8×14 grid) the sample is the clip
+    outside = np.ones(latents.shape, dtype=bool)
+    outside[1, :, :, 4:, 7:] = False
+    np.testing.assert_allclose(latents[outside], real[outside], atol=2e-2)
+    assert np.abs(latents[~outside] - real[~outside]).max() > 0.1
+
+
+def test_gaia2_from_a_latent_cache_with_fewer_cameras_than_training(checkpoints, tmp_path: Path) -> None:
+    """A cached clip of the latent cache as the context, and a 2-camera rig for a model trained on 3."""
+    cached = run(checkpoints, tmp_path / "cache", "rollout", "context.source=latents", "model.chunks=1",
+                 f"context.folder={checkpoints['latents'] / 'val'}", "context.index=1")
+    assert cached["clip"] == read_latent_clip(find_latent_clips(checkpoints["latents"] / "val")[1]).clip_id
+    two = run(checkpoints, tmp_path / "two", "scratch", "data.source.cameras=[front_left,front]")
+    assert two["cameras"] == 2
+    assert json.loads((tmp_path / "two" / "conditioning.json").read_text())["cameras"] == ["front_left", "front"]
+
+
+def test_bad_gaia2_settings_are_named(checkpoints, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="model.metadata.weather='hail'"):
+        run(checkpoints, tmp_path / "a", "scratch", "model.metadata={weather: hail}")
+    with pytest.raises(ValueError, match="model.metadata.colour"):
+        run(checkpoints, tmp_path / "b", "scratch", "model.metadata={colour: red}")
+    with pytest.raises(ValueError, match="model=gaia2 mode=video"):
+        run(checkpoints, tmp_path / "c", "video")
+    with pytest.raises(ValueError, match="world_model_ckpt"):
+        generate(compose_config("generate", ["model=gaia2", "mode=scratch", *RIG, "tokenizer_ckpt=x.ckpt"], tmp_path / "d"))
+    with pytest.raises(TypeError, match="world_model_ckpt=.*VideoTokenizerModule"):
+        generate(compose_config("generate", ["model=gaia2", "mode=scratch", *RIG, f"tokenizer_ckpt={checkpoints['tokenizer']}",
+                                             f"world_model_ckpt={checkpoints['tokenizer']}"], tmp_path / "e"))
+    with pytest.raises(ValueError, match="inpaint.cameras"):
+        run(checkpoints, tmp_path / "f", "inpaint", "model.inpaint.region=box", "model.inpaint.cameras=[rear]")
+    with pytest.raises(ValueError, match="not a trainable model"):
+        train(compose_config("train", ["model=gaia2", "extras.print_config=false"], tmp_path / "g"))
+    assert not (tmp_path / "a" / "results.json").exists()
+
+
+def test_edited_labels_reach_the_conditions(checkpoints) -> None:
+    clip = read_latent_clip(find_latent_clips(checkpoints["latents"] / "val")[0])
+    pipeline = Gaia2Pipeline.from_checkpoints(checkpoints["tokenizer"], checkpoints["world_model"], 64, 112)
+    edited = with_labels(clip, 8, np.full((8, 2), [3.0, 0.02], np.float32), "It is snowing.", {"weather": "snow"})
+    _, cond = pipeline.window(edited, 0, 4)
+    _, original = pipeline.window(clip, 0, 4)
+    torch.testing.assert_close(cond.actions[0, 2:], torch.tensor([[3.0, 0.02]] * 2))
+    torch.testing.assert_close(cond.actions[0, :2], original.actions[0, :2])
+    assert int(cond.metadata["weather"][0]) == 4 and not torch.equal(cond.text, original.text)
+    check_metadata({"weather": "snow", "speed_limit": 50}, ["weather", "speed_limit"])
+
+
+def test_conditioning_boxes_project_onto_the_camera_that_sees_them(checkpoints) -> None:
+    clip = read_latent_clip(find_latent_clips(checkpoints["latents"] / "val")[0])
+    ahead = AgentBoxes(centre=[[12.0, 0.0, 0.8]], size=[[4.5, 1.9, 1.6]], yaw=[0.0], category=[0], track_id=[7])
+    clip.agents = [ahead] * len(clip.agents)
+    boxes = pixel_boxes(clip)
+    front = boxes[0]["boxes_2d"]["front"]
+    assert len(front) == 1 and front[0]["track_id"] == 7 and front[0]["category"] == "car"
+    x0, y0, x1, y1 = front[0]["box"]
+    assert 0 < x0 < 56 < x1 < 112 and 0 < y0 < y1 <= 64  # centred in the 112-wide front view
+    pipeline = Gaia2Pipeline.from_checkpoints(checkpoints["tokenizer"], checkpoints["world_model"], 64, 112)
+    _, cond = pipeline.window(clip, 0, 4)
+    masks = box_masks(cond, 16, 4)
+    assert masks.shape == (3, 16, 64, 112) and masks[0].any() and masks[0, :, 32, 56].all()
+    assert masks[0].sum() == 16 * int(masks[0, 0].sum())
+
+
+def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> None:
+    results = run(checkpoints, tmp_path, "evaluate", "model.evaluate.contexts=2", "model.evaluate.probe_clips=2",
+                  "model.evaluate.probe_steps=3")
+    assert set(results["agents"]["rows"]) == {"real frames", "tokenized real", "model, agent conditions",
+                                              "model, selective CFG ×3", "model, agents dropped"}
+    assert set(results["actions"]["rows"]) == {"real frames, own actions", "tokenized real, own actions",
+                                               "model, commanded actions", "model, actions dropped",
+                                               "real continuation vs the command"}
+    for row in results["actions"]["rows"].values():
+        assert np.isfinite(row["speed_mae"]) and np.isfinite(row["curvature_mae"])
+    table = (tmp_path / "gaia2_evaluation.md").read_text()
+    assert "IoU with agent masks" in table and "speed MAE" in table
+    assert results["actions"]["scored_frames"] == 7  # 8 generated frames → 7 pairs after the first
