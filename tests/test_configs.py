@@ -95,6 +95,20 @@ def test_generate_config_composes(guidance: str, tmp_path: Path) -> None:
     assert instantiate(cfg.token_sampler).picker.mode == "top_k"
 
 
+@pytest.mark.parametrize("family", ["gaia1", "gaia2"])
+def test_generate_families_compose(family: str, tmp_path: Path) -> None:
+    """generate.py model=gaia1|gaia2: the GAIA-2 family instantiates the report's solver (Euler, 50 linear-quadratic
+    steps) and guidance switched off by default."""
+    from hydra.utils import instantiate
+
+    cfg = compose_config("generate", [f"model={family}", "data=synthetic_rig"], tmp_path)
+    assert resolve_job(cfg)["model"]["family"] == family
+    if family == "gaia2":
+        sampler, guidance = instantiate(cfg.model.sampler), instantiate(cfg.model.guidance)
+        assert (sampler.steps, sampler.schedule, sampler.solver) == (50, "linear_quadratic", "euler")
+        assert not guidance.active and list(guidance.conditions) == ["agents"]
+
+
 def test_experiment_values_win_over_root_defaults(tmp_path: Path) -> None:
     cfg = compose_config("train", ["experiment=gaia1/tokenizer_tiny"], tmp_path)
     assert cfg.run_name == "gaia1_tokenizer_tiny" and cfg.trainer.max_steps == 1200

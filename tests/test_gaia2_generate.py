@@ -14,6 +14,7 @@ from rerun.chunk import RrdReader
 
 from gaia_app.data.clip import AgentBoxes
 from gaia_app.data.latent_cache import find_latent_clips, read_latent_clip
+from gaia_app.eval.report import combined_table
 from gaia_app.pipelines.gaia1_inputs import future_actions
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline, check_metadata, with_labels
 from gaia_app.tasks.gaia2_evaluate import box_masks
@@ -173,6 +174,20 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
                                                "real continuation vs the command"}
     for row in results["actions"]["rows"].values():
         assert np.isfinite(row["speed_mae"]) and np.isfinite(row["curvature_mae"])
+    fidelity = results["fidelity"]
+    assert fidelity["clips"] == 6 and fidelity["context_frames"] == 8 and fidelity["generated_frames"] == 8
+    assert set(fidelity["rows"]) == {"model (rollouts)", "tokenized real (ceiling)", "held frame (floor)"}
+    assert all(set(row) == {"psnr", "ssim", "fvmd", "agent_iou"} for row in fidelity["rows"].values())
     table = (tmp_path / "gaia2_evaluation.md").read_text()
-    assert "IoU with agent masks" in table and "speed MAE" in table
+    assert "IoU with agent masks" in table and "speed MAE" in table and "held frame (floor)" in table
     assert results["actions"]["scored_frames"] == 7  # 8 generated frames → 7 pairs after the first
+
+    # one table with a GAIA-1 evaluation run (its evaluation.json layout, tasks/evaluate.py)
+    gaia1 = tmp_path / "gaia1"
+    gaia1.mkdir()
+    row = {"psnr": 20.0, "ssim": 0.5, "fvmd": 3.0, "agent_iou": 0.2, "lpips": 0.3}
+    (gaia1 / "evaluation.json").write_text(json.dumps({"contexts": 8, "context_frames": 2, "generated_frames": 7,
+                                                       "rate": 6.25, "rows": {"model (video rollouts)": row}}))
+    merged = combined_table({"GAIA-1": gaia1, "GAIA-2": tmp_path})
+    assert merged.count("| GAIA-2 · ") == 3 and "| GAIA-1 · model (video rollouts) | 20.000 | 0.500 | 3.000 | 0.200 |" in merged
+    assert "lpips" not in merged  # only the metrics both runs computed

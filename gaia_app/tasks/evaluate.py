@@ -45,6 +45,13 @@ METRICS = ("psnr", "ssim", "lpips", "fvmd", "fid", "fdd", "agent_iou")
 
 def check_settings(cfg: DictConfig) -> None:
     """Named errors before any work: unknown metrics, fdd without a checkpoint, too few contexts."""
+    check_metrics(cfg)
+    if cfg.evaluate.contexts < 2:
+        raise ValueError(f"evaluate.contexts={cfg.evaluate.contexts}: Fréchet distances need at least 2 clips per set")
+
+
+def check_metrics(cfg: DictConfig) -> None:
+    """Named errors for unknown metrics and for fid / fdd / lpips without their local checkpoints."""
     e = cfg.evaluate
     unknown = sorted(set(e.metrics) - set(METRICS))
     if unknown or not e.metrics:
@@ -56,8 +63,6 @@ def check_settings(cfg: DictConfig) -> None:
     if "lpips" in e.metrics and not e.lpips_checkpoint:
         raise ValueError("evaluate.metrics has lpips: set evaluate.lpips_checkpoint to local VGG16 weights "
                          "(and evaluate.lpips_heads_checkpoint to the LPIPS heads)")
-    if e.contexts < 2:
-        raise ValueError(f"evaluate.contexts={e.contexts}: Fréchet distances need at least 2 clips per set")
 
 
 def feature_metrics(cfg: DictConfig) -> dict[str, Any]:

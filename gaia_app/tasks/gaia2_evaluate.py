@@ -17,7 +17,11 @@ model.steps − context_steps steps generated under each of `commands` (speed, c
 error of the probed actions against the commanded ones, for the model, the model with actions dropped (the floor),
 the real continuation (what happened instead of the command) and, scored against their own logged actions, the real
 and tokenized frames (the probe's and the tokenizer's ceilings).
-Writes gaia2_evaluation.json and gaia2_evaluation.md (both tables) into the run dir.
+Fidelity (every camera; the metrics of `evaluate.metrics`, shared with GAIA-1's mode=evaluate and scored by the same
+code, tasks/evaluate.score): the context steps continued under the scene's own conditions, scored from the first
+generated frame against the real continuation, next to the tokenized real clip (ceiling) and the last context frame
+held (floor).
+Writes gaia2_evaluation.json and gaia2_evaluation.md (the three tables) into the run dir.
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ from gaia_app.models.gaia2.conditioning import project_boxes
 from gaia_app.pipelines.gaia1_inputs import future_actions
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline, with_labels
 from gaia_app.pipelines.gaia2_world_model import Guidance
+from gaia_app.tasks.evaluate import check_metrics, feature_metrics, score
 from gaia_app.tasks.gaia2_generate import cut_steps, load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
 
@@ -155,10 +160,43 @@ def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Sy
             "context_frames": first, "scored_frames": frames - first - 1, "rows": rows}
 
 
+def fidelity_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
+                   probe: Any, generator: torch.Generator) -> dict[str, Any]:
+    """Rows of the fidelity table (module docstring); clips are (scene, camera) pairs."""
+    g = cfg.model
+    c, new, tau = g.context_steps, g.steps - g.context_steps, pipeline.temporal
+    first, frames = c * tau, g.steps * tau
+    real, masks, model, tokenized = [], [], [], []
+    for sample, clip in tqdm(scenes, desc="fidelity"):
+        real.append(to_float(torch.from_numpy(sample.clip.frames[:, :frames])))
+        masks.append(agent_masks(sample, frames))
+        latents, cond = pipeline.window(clip, 0, g.steps)
+        noise_seed = int(torch.randint(2**31, (), generator=generator))
+        x = pipeline.world.rollout(latents[:, :, :c], [cond], new, torch.Generator(latents.device).manual_seed(noise_seed))
+        model.append(pipeline.decode(x)[0].cpu())
+        tokenized.append(pipeline.decode(latents)[0].cpu())
+    real_clips, mask_clips = torch.cat(real), torch.cat(masks)  # (N·v, T, 3, H, W), (N·v, T, H, W)
+    held = torch.cat([real_clips[:, :first], real_clips[:, first - 1 : first].expand(-1, frames - first, -1, -1, -1)], 1)
+    metrics, networks = list(cfg.evaluate.metrics), feature_metrics(cfg)
+    agents = (probe, mask_clips) if "agent_iou" in metrics else None
+    candidates = {"model (rollouts)": torch.cat(model), "tokenized real (ceiling)": torch.cat(tokenized),
+                  "held frame (floor)": held}
+    return {"clips": int(real_clips.shape[0]), "context_frames": first, "generated_frames": frames - first,
+            "rows": {name: score(metrics, real_clips, video, first, networks, agents) for name, video in candidates.items()}}
+
+
 def markdown(results: dict[str, Any]) -> str:
-    """The two tables of a GAIA-2 evaluation."""
+    """The three tables of a GAIA-2 evaluation."""
+    fidelity = results["fidelity"]
+    names = list(next(iter(fidelity["rows"].values())))
+    lines = [f"Fidelity ({fidelity['clips']} held-out clips (scene × camera), {fidelity['context_frames']} context + "
+             f"{fidelity['generated_frames']} generated frames)", "",
+             "| rollouts vs real continuations | " + " | ".join(names) + " |", "|---" + "|---:" * len(names) + "|"]
+    lines += [f"| {row} | " + " | ".join(f"{values[n]:.3f}" for n in names) + " |"
+              for row, values in fidelity["rows"].items()]
+    lines.append("")
     agents = results["agents"]
-    lines = [f"Agent control ({agents['scenes']} held-out scenes × {len(results['cameras'])} cameras × "
+    lines += [f"Agent control ({agents['scenes']} held-out scenes × {len(results['cameras'])} cameras × "
              f"{agents['frames']} frames, generated from scratch)", "",
              "| frames | IoU with agent masks ↑ | IoU with conditioning boxes ↑ |", "|---|---:|---:|"]
     lines += [f"| {name} | {row['iou_agent_masks']:.3f} | {row['iou_conditioning_boxes']:.3f} |"
@@ -176,6 +214,7 @@ def gaia2_evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     e = cfg.model.evaluate
     if e.contexts < 1:
         raise ValueError(f"model.evaluate.contexts={e.contexts}: expected at least 1")
+    check_metrics(cfg)
     pipeline = load_gaia2(cfg)
     frames = cfg.model.steps * pipeline.temporal
     segmentation, dynamics, fit = train_probes_for(cfg, frames)
@@ -183,6 +222,7 @@ def gaia2_evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
               for s in rig_samples(cfg, cfg.context.seed, e.contexts, frames)]
     generator = torch.Generator().manual_seed(int(cfg.seed))
     results = {"cameras": [c.name for c in scenes[0][1].cameras], "probe_fit": fit,
+               "fidelity": fidelity_table(cfg, pipeline, scenes, segmentation, generator),
                "agents": agent_table(cfg, pipeline, scenes, segmentation, generator),
                "actions": action_table(cfg, pipeline, scenes, dynamics, generator)}
     atomic_write_text(run_dir / "gaia2_evaluation.json", json.dumps(results, indent=2))
