@@ -18,7 +18,7 @@ from gaia_app.eval.report import combined_table
 from gaia_app.pipelines.gaia1_inputs import future_actions
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline, check_metadata, with_labels
 from gaia_app.tasks.gaia2_evaluate import box_masks
-from gaia_app.tasks.gaia2_generate import pixel_boxes
+from gaia_app.tasks.gaia2_generate import left_to_right, pixel_boxes
 from gaia_app.tasks.generate import generate
 from gaia_app.tasks.train import train
 from tests.conftest import compose_config
@@ -152,6 +152,7 @@ def test_conditioning_boxes_project_onto_the_camera_that_sees_them(checkpoints) 
     clip = read_latent_clip(find_latent_clips(checkpoints["latents"] / "val")[0])
     ahead = AgentBoxes(centre=[[12.0, 0.0, 0.8]], size=[[4.5, 1.9, 1.6]], yaw=[0.0], category=[0], track_id=[7])
     clip.agents = [ahead] * len(clip.agents)
+    assert [clip.cameras[i].name for i in left_to_right(clip)] == ["front_left", "front", "front_right"]
     boxes = pixel_boxes(clip)
     front = boxes[0]["boxes_2d"]["front"]
     assert len(front) == 1 and front[0]["track_id"] == 7 and front[0]["category"] == "car"

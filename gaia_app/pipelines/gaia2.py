@@ -78,13 +78,15 @@ class Gaia2Pipeline:
         world_model: LatentWorldModelModule (its `latent_scale` maps tokenizer latents to the model's).
         height, width: the tokenizer's input size (clips are resized and cropped to it).
         sampler, guidance: flow ODE solver and classifier-free guidance (pipelines/gaia2_world_model.py).
+        fps: clips are resampled to this rate by timestamps before encoding (None: their own rate).
     """
 
     def __init__(self, tokenizer: VideoTokenizerModule, world_model: LatentWorldModelModule, height: int, width: int,
-                 sampler: FlowSampler | None = None, guidance: Guidance | None = None, resize_mode: str = "crop"):
+                 sampler: FlowSampler | None = None, guidance: Guidance | None = None, resize_mode: str = "crop",
+                 fps: float | None = None):
         self.tokenizer = tokenizer.tokenizer.eval()
         self.module = world_model
-        self.encoder = VideoTokenizerPipeline(self.tokenizer, height, width, resize_mode)
+        self.encoder = VideoTokenizerPipeline(self.tokenizer, height, width, resize_mode, fps)
         self.world = LatentWorldModelPipeline(world_model.model, sampler, guidance)
         self.metadata = MetadataEncoder(list(world_model.model.conditioner.metadata_fields))
         self.scale = float(world_model.latent_scale)
@@ -92,10 +94,10 @@ class Gaia2Pipeline:
     @classmethod
     def from_checkpoints(cls, tokenizer_ckpt: str | Path, world_model_ckpt: str | Path, height: int, width: int,
                          sampler: FlowSampler | None = None, guidance: Guidance | None = None, device: str = "cpu",
-                         resize_mode: str = "crop") -> Gaia2Pipeline:
+                         resize_mode: str = "crop", fps: float | None = None) -> Gaia2Pipeline:
         tokenizer = load_checkpoint(tokenizer_ckpt, VideoTokenizerModule, "tokenizer_ckpt", device)
         world_model = load_checkpoint(world_model_ckpt, LatentWorldModelModule, "world_model_ckpt", device)
-        return cls(tokenizer, world_model, height, width, sampler, guidance, resize_mode)
+        return cls(tokenizer, world_model, height, width, sampler, guidance, resize_mode, fps)
 
     @property
     def temporal(self) -> int:

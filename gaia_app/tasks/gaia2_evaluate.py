@@ -41,6 +41,7 @@ from gaia_app.data.synthetic.generate import SyntheticSample
 from gaia_app.data.transforms import to_float
 from gaia_app.eval.agent_iou import agent_iou, train_agent_probe
 from gaia_app.eval.controllability import action_error, probe_clips, train_probes
+from gaia_app.eval.report import ARROWS
 from gaia_app.models.gaia2.conditioning import project_boxes
 from gaia_app.pipelines.gaia1_inputs import future_actions
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline, with_labels
@@ -191,7 +192,7 @@ def markdown(results: dict[str, Any]) -> str:
     names = list(next(iter(fidelity["rows"].values())))
     lines = [f"Fidelity ({fidelity['clips']} held-out clips (scene × camera), {fidelity['context_frames']} context + "
              f"{fidelity['generated_frames']} generated frames)", "",
-             "| rollouts vs real continuations | " + " | ".join(names) + " |", "|---" + "|---:" * len(names) + "|"]
+             "| rollouts vs real continuations | " + " | ".join(f"{n} {ARROWS[n]}" for n in names) + " |", "|---" + "|---:" * len(names) + "|"]
     lines += [f"| {row} | " + " | ".join(f"{values[n]:.3f}" for n in names) + " |"
               for row, values in fidelity["rows"].items()]
     lines.append("")

@@ -13,7 +13,7 @@ generated frames, model.drop removes whole conditions.
     edit      noise the clip's latents to 1 − model.edit_strength and denoise them under the (edited) conditions
 
 Writes into the run dir (staged, so a failed run leaves nothing partial): sample_<k>.mp4 (cameras side by side,
-a green / red top stripe on given / generated frames), grid.mp4 (the tokenized real clip, then every sample),
+leftmost first, a green / red top stripe on given / generated frames), grid.mp4 (the tokenized real clip, then every sample),
 latents.npy (k, v, t, C, h, w) in the tokenizer's units, conditioning.json and rollout.rrd (a tab per clip:
 camera grid with the conditioning boxes, 3D frusta and agent boxes, actions and captions on `frame`).
 """
@@ -60,7 +60,7 @@ def load_gaia2(cfg: DictConfig) -> Gaia2Pipeline:
     g = cfg.model
     return Gaia2Pipeline.from_checkpoints(cfg.tokenizer_ckpt, cfg.world_model_ckpt, cfg.data.height, cfg.data.width,
                                           instantiate(g.sampler), instantiate(g.guidance), cfg.device,
-                                          cfg.data.get("resize_mode", "crop"))
+                                          cfg.data.get("resize_mode", "crop"), cfg.fps)
 
 
 def latent_steps(cfg: DictConfig) -> int:
@@ -219,6 +219,13 @@ def display_clip(clip: LatentClip, video: torch.Tensor, name: str, boxes: list[d
                 text=clip.text, agents=clip.agents, cameras=clip.cameras, meta=dict(clip.meta), frame_meta=boxes)
 
 
+def left_to_right(clip: LatentClip) -> list[int]:
+    """Camera indices ordered by where they look, leftmost first (yaw of the optical axis in the ego frame, z up),
+    so side-by-side views read like the scene."""
+    yaws = [math.atan2(float(c.extrinsics[1, 2]), float(c.extrinsics[0, 2])) for c in clip.cameras]
+    return sorted(range(len(yaws)), key=lambda i: -yaws[i])
+
+
 def stripe(video: np.ndarray, first_generated: int) -> np.ndarray:
     """(v, T, 3, H, W) uint8 → cameras side by side (T, H, v·W, 3) with a 2-pixel top stripe: green on given frames,
     red on generated ones."""
@@ -232,7 +239,8 @@ def write_outputs(stage: Path, cfg: DictConfig, clip: LatentClip, real: torch.Te
                   first_generated: int) -> list[str]:
     """mp4s and rollout.rrd of the decoded real clip (v, T, 3, H, W) and samples (k, v, T, 3, H, W)."""
     fps = clip.fps or 12.5
-    rows = [to_uint8(real.cpu()).numpy()] + [to_uint8(s.cpu()).numpy() for s in samples]
+    order = left_to_right(clip)
+    rows = [to_uint8(real.cpu()).numpy()[order]] + [to_uint8(s.cpu()).numpy()[order] for s in samples]
     names = []
     for k, video in enumerate(rows[1:]):
         names.append(f"sample_{k}.mp4")
@@ -251,7 +259,7 @@ def log_generation(path: Path, cfg: DictConfig, clip: LatentClip, real: torch.Te
     rec = rr.RecordingStream("gaia_app", recording_id=f"gaia2-{path.parent.name}")
     rec.save(str(path))
     roots = ["/real"] + [f"/sample_{k}" for k in range(len(samples))]
-    rec.send_blueprint(rig_tabs_blueprint([c.name for c in clip.cameras], roots))
+    rec.send_blueprint(rig_tabs_blueprint([clip.cameras[i].name for i in left_to_right(clip)], roots))
     boxes = pixel_boxes(clip)
     metadata = ", ".join(f"{k}={v}" for k, v in sorted(clip.meta.items()) if isinstance(v, (str, int, float, bool)))
     for root, video in zip(roots, [real, *samples]):
