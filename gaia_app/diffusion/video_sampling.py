@@ -29,17 +29,21 @@ def sample_window(net: VideoDecoder, schedule: CosineNoiseSchedule, sampler: Cal
     training, so the decoder never sees its own (never trained) guess for them.
     """
     given = context_mask[:, :, None, None, None]
+    base = net.residual_base(rendered, token_mask, context)  # a residual decoder samples frames − base
+    clean = net.to_residual(context, base)
 
     def denoiser(temporal: bool) -> Denoiser:
         def denoise(x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
             fresh = torch.randn(context.shape, generator=generator, device=context.device)
-            x = torch.where(given, schedule.add_noise(context, fresh, step), x)
-            return net(x, step, tokens, token_mask, context, context_mask, temporal=temporal, rendered=rendered)
+            x = torch.where(given, schedule.add_noise(clean, fresh, step), x)
+            return net(x, step, tokens, token_mask, clean, context_mask, temporal=temporal, rendered=rendered)
         return denoise
 
     denoise = denoiser(True)
     if blend is not None:  # eq. 4: image and video denoising mixed at random steps
         denoise = blend.denoiser(denoise, denoiser(False), generator)
     noise = torch.randn(context.shape, generator=generator, device=context.device)
-    out = sampler(denoise, noise, generator=generator, callback=callback)
-    return torch.where(given, context, out.clamp(-1, 1))
+    frames_callback = None if callback is None else (
+        lambda i, t, x, x0_pred: callback(i, t, x, net.from_residual(x0_pred, base)))
+    out = sampler(denoise, noise, generator=generator, callback=frames_callback)
+    return torch.where(given, context, net.from_residual(out, base).clamp(-1, 1))

@@ -154,15 +154,17 @@ class VideoDecoderModule(GaiaModule):
 
     def loss(self, net: VideoDecoder, x0: torch.Tensor, tokens: torch.Tensor, task: DecoderTask,
              dropout: bool) -> torch.Tensor:
-        """0.1·L1 + 1.0·L2 on v over the task's generated frames (GAIA-1 eq. 2, §4.3). x0: (b, t, 3, H, W)."""
+        """0.1·L1 + 1.0·L2 on v over the task's generated frames (GAIA-1 eq. 2, §4.3). x0: (b, t, 3, H, W); a
+        residual decoder diffuses (and is given as context) its residual over the rendered tokens instead."""
         b = x0.shape[0]
+        token_mask, context_mask = self.masks(task, tokens, dropout)
+        rendered = self.rendered(net, tokens)
+        x0 = net.to_residual(x0, net.residual_base(rendered, token_mask, x0))  # x0 itself unless net.residual
         step = self.schedule.sample_timesteps(b, x0.device)
         noise = torch.randn_like(x0)
         x_t = self.schedule.add_noise(x0, noise, step)
         alpha, sigma = self.schedule.alpha_sigma(step)
-        token_mask, context_mask = self.masks(task, tokens, dropout)
-        pred = net(x_t, step, tokens, token_mask, x0, context_mask, temporal=task.temporal,
-                   rendered=self.rendered(net, tokens))
+        pred = net(x_t, step, tokens, token_mask, x0, context_mask, temporal=task.temporal, rendered=rendered)
         target = task.target.to(x0.device)
         error = (pred - v_target(x0, noise, alpha, sigma))[:, target]
         return self.l1_weight * error.abs().mean() + self.l2_weight * error.pow(2).mean()

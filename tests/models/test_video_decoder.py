@@ -10,6 +10,9 @@ import torch.nn.functional as F
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule
+from gaia_app.diffusion.samplers import DDIMSampler
+from gaia_app.diffusion.video_sampling import sample_window
 from gaia_app.models.gaia1.video_decoder import VideoDecoder
 from tests.conftest import CONF_DIR
 
@@ -160,6 +163,40 @@ def test_rendered_tokens_are_required_exactly_when_built_for() -> None:
         tiny(render_tokens=True)(**inputs(), rendered=torch.zeros(2, 7, 3, 8, W))
     with pytest.raises(ValueError, match="built with render_tokens=False"):
         tiny()(**inputs(), rendered=torch.zeros(2, 7, 3, H, W))
+
+
+class ZeroResidual(VideoDecoder):
+    """Predicts v so that x̂₀ = 0 in whatever space the decoder diffuses: a residual decoder then returns its base."""
+
+    schedule = CosineNoiseSchedule()
+
+    def forward(self, x_t, time, tokens, token_mask, context, context_mask, temporal=True, rendered=None):
+        alpha, sigma = self.schedule.alpha_sigma(time)
+        return alpha[:, None, None, None, None] * x_t / sigma[:, None, None, None, None]
+
+
+@pytest.mark.parametrize("residual", [True, False])
+def test_residual_decoder_samples_relative_to_the_rendered_tokens(residual: bool) -> None:
+    """residual=True: the sampler works on frames − base (base = rendered frames where tokens are given, 0 elsewhere)
+    and adds the base back; context frames are copied through unchanged either way."""
+    torch.manual_seed(0)
+    net = ZeroResidual(vocab_size=VOCAB, token_grid=GRID, image_size=(H, W), frames=7, channels=8, channel_mults=(1, 2),
+                       attention_levels=(1,), heads=2, token_dim=8, render_tokens=True, residual=residual)
+    x = inputs(b=1)
+    x["token_mask"][:, 5:] = False  # the last two frames are interpolated (no tokens)
+    x["context_mask"][:, 0] = True
+    rendered = torch.rand(1, 7, 3, H, W) * 1.6 - 0.8
+    out = sample_window(net, net.schedule, DDIMSampler(net.schedule, steps=5), x["tokens"], x["token_mask"], x["context"],
+                        x["context_mask"], rendered=rendered, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(out[:, 0], x["context"][:, 0])
+    expected = rendered[:, 1:5] if residual else torch.zeros_like(rendered[:, 1:5])
+    torch.testing.assert_close(out[:, 1:5], expected, atol=1e-5, rtol=0)
+    torch.testing.assert_close(out[:, 5:], torch.zeros_like(out[:, 5:]), atol=1e-5, rtol=0)  # no tokens: base 0
+
+
+def test_residual_needs_rendered_tokens() -> None:
+    with pytest.raises(ValueError, match="residual=True .* set render_tokens=True"):
+        tiny(residual=True)
 
 
 def test_other_image_sizes_expect_a_scaled_token_grid() -> None:

@@ -179,6 +179,11 @@ class VideoDecoder(nn.Module):
         checkpointing: recompute each SpaceTimeBlock's activations in backward (GAIA-1 §4.3).
         render_tokens: also take `rendered` (the tokenizer's frame-by-frame decoding of the tokens) as
             input channels; forward then requires it.
+        residual: diffuse the residual over the rendered tokens, x₀ − base with base = the rendered frame where
+            tokens are given and 0 elsewhere (`residual_base`), instead of x₀ (needs render_tokens). The decoder
+            then starts from the tokenizer's own picture and learns what frame-by-frame decoding gets wrong
+            (temporal consistency) instead of the whole token → image mapping. Unscaled: frames without tokens
+            (interpolation) stay pixels in [−1, 1], which the sampler's x̂₀ clipping assumes.
     """
 
     block_types = (SpaceTimeBlock,)
@@ -186,10 +191,13 @@ class VideoDecoder(nn.Module):
     def __init__(self, vocab_size: int, token_grid: Sequence[int], image_size: Sequence[int], frames: int,
                  channels: int = 64, channel_mults: Sequence[int] = (1, 2, 4), res_blocks: int = 1,
                  attention_levels: Sequence[int] = (2,), heads: int = 4, token_dim: int = 64,
-                 dropout: float = 0.0, checkpointing: bool = False, render_tokens: bool = False):
+                 dropout: float = 0.0, checkpointing: bool = False, render_tokens: bool = False,
+                 residual: bool = False):
         super().__init__()
+        if residual and not render_tokens:
+            raise ValueError("VideoDecoder: residual=True diffuses the residual over the rendered tokens; set render_tokens=True")
         self.vocab_size, self.frames, self.channels, self.checkpointing = vocab_size, frames, channels, checkpointing
-        self.render_tokens = render_tokens
+        self.render_tokens, self.residual = render_tokens, residual
         self.token_grid, self.image_size = tuple(token_grid), tuple(image_size)
         self.downsampling = self._token_downsampling()
         self.unet_factor = 2 ** (len(channel_mults) - 1)
@@ -314,6 +322,21 @@ class VideoDecoder(nn.Module):
         if rendered is not None and token_mask is not None:
             parts.append(torch.where(self.pixel_token_mask(token_mask, x_t.shape[-2:]), rendered, torch.zeros_like(rendered)))
         return rearrange(torch.cat(parts, dim=2), "b t c h w -> (b t) c h w")
+
+    def residual_base(self, rendered: torch.Tensor | None, token_mask: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        """(b, t, 3, H, W) the picture the diffused residual is relative to: the rendered tokens where tokens are
+        given (token_mask), 0 elsewhere; all zeros unless `residual` (then the diffused variable is x₀ itself)."""
+        if not self.residual:
+            return torch.zeros_like(like)
+        return torch.where(self.pixel_token_mask(token_mask, like.shape[-2:]), rendered, torch.zeros_like(rendered))
+
+    def to_residual(self, frames: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
+        """Frames (b, t, 3, H, W) → the variable the decoder diffuses (frames themselves unless `residual`)."""
+        return frames - base
+
+    def from_residual(self, x: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
+        """Inverse of `to_residual`."""
+        return x + base
 
     def pixel_token_mask(self, token_mask: torch.Tensor, size: Sequence[int]) -> torch.Tensor:
         """token_mask (b, t) or (b, t, h, w) → (b, t, 1, H, W): each token covers its D×D patch."""
