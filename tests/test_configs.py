@@ -23,8 +23,11 @@ def shrink(experiment: str) -> list[str]:
         net = "gaia2_world_model_tiny" if "world_model" in experiment else "gaia2_video_tokenizer_tiny"
         return [f"model/net={net}", "trainer=tiny"]
     family = next((f for f in ("world_model", "video_decoder") if f in experiment), "tokenizer")
+    family = "world_model" if experiment.endswith("scaling") else family  # a sweep over world-model sizes
     net = f"gaia1_{family}_tiny"
-    return [f"model/net={net}", "trainer=tiny"]
+    # the paper's T5-large is a local directory a user provides (the trainable keyword encoder stands in)
+    text = ["model/text_encoder=learned", "~model.text_encoder.path"] if experiment.endswith("world_model_paper") else []
+    return [f"model/net={net}", "trainer=tiny", *text]
 
 
 def options(group: str) -> list[str]:

@@ -62,3 +62,29 @@ def test_gaia2_world_model_paper_preset() -> None:
     count = sum(p.numel() for p in net.parameters())
     assert len(net.blocks) == 22
     assert count == pytest.approx(8.4e9, rel=0.10), f"{count / 1e9:.2f}B parameters"
+
+
+# GAIA-1 §4.1–4.3: (global batch, steps, lr, weight decay, betas, warm-up, decay, final lr, strategy)
+PAPER_RUNS = {
+    "gaia1/tokenizer_paper": (160, 200_000, 1e-4, 0.01, [0.5, 0.9], 5_000, 10_000, 1e-5, "DDPStrategy"),
+    "gaia1/world_model_paper": (128, 100_000, 1e-4, 0.1, [0.9, 0.95], 2_500, 97_500, 1e-5, "DeepSpeedStrategy"),
+    "gaia1/video_decoder_paper": (64, 300_000, 5e-5, 0.01, [0.9, 0.99], 2_500, 5_000, 1e-6, "DDPStrategy"),
+}
+
+
+@pytest.mark.parametrize("experiment", sorted(PAPER_RUNS))
+def test_paper_experiments_carry_the_papers_training_settings(experiment: str, tmp_path) -> None:
+    from tests.conftest import compose_config
+
+    batch, steps, lr, wd, betas, warmup, decay, final_lr, strategy = PAPER_RUNS[experiment]
+    cfg = compose_config("train", [f"experiment={experiment}"], tmp_path)
+    t = cfg.trainer
+    assert cfg.data.batch_size * t.devices * t.num_nodes == batch
+    assert t.max_steps == steps and t.strategy._target_.endswith(strategy)
+    optim, sched = cfg.model.optim, cfg.model.sched
+    assert (optim.lr, optim.weight_decay, list(optim.betas)) == (lr, wd, betas)
+    assert (sched.warmup_steps, sched.decay_steps, sched.final_lr) == (warmup, decay, final_lr)
+    if experiment == "gaia1/world_model_paper":
+        net = cfg.model.net
+        assert net.frames * (net.text_tokens + net.image_tokens + net.action_tokens) == 15_860 and net.checkpointing
+        assert t.strategy.stage == 2 and t.gradient_clip_val == 1.0

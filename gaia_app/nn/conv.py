@@ -10,6 +10,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.utils.checkpoint import checkpoint
 
 
 def group_norm(channels: int) -> nn.GroupNorm:
@@ -58,10 +59,13 @@ class ConvEncoder(nn.Module):
         channels: base width; stage i has channels * mults[i].
         mults: per-stage multipliers; each stage but the last halves the resolution.
         blocks_per_stage: residual blocks per stage.
+        checkpointing: recompute each stage's activations in backward (memory for compute).
     """
 
-    def __init__(self, in_channels: int, out_channels: int, channels: int, mults: Sequence[int], blocks_per_stage: int):
+    def __init__(self, in_channels: int, out_channels: int, channels: int, mults: Sequence[int], blocks_per_stage: int,
+                 checkpointing: bool = False):
         super().__init__()
+        self.checkpointing = checkpointing
         widths = [channels * m for m in mults]
         self.stem = nn.Conv2d(in_channels, widths[0], 3, padding=1)
         self.stages = nn.ModuleList(
@@ -75,15 +79,17 @@ class ConvEncoder(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h = self.stem(x)
         for stage in self.stages:
-            h = stage(h)
+            h = run_stage(stage, h, self.checkpointing and self.training)
         return self.out(self.mid(h))
 
 
 class ConvDecoder(nn.Module):
     """Mirror of ConvEncoder: (b, c_in, h, w) → (b, c_out, h·2^(len(mults)-1), w·2^(len(mults)-1))."""
 
-    def __init__(self, in_channels: int, out_channels: int, channels: int, mults: Sequence[int], blocks_per_stage: int):
+    def __init__(self, in_channels: int, out_channels: int, channels: int, mults: Sequence[int], blocks_per_stage: int,
+                 checkpointing: bool = False):
         super().__init__()
+        self.checkpointing = checkpointing
         widths = [channels * m for m in reversed(mults)]
         self.stem = nn.Conv2d(in_channels, widths[0], 3, padding=1)
         self.mid = ResBlock(widths[0], widths[0])
@@ -97,5 +103,12 @@ class ConvDecoder(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h = self.mid(self.stem(x))
         for stage in self.stages:
-            h = stage(h)
+            h = run_stage(stage, h, self.checkpointing and self.training)
         return self.out(h)
+
+
+def run_stage(stage: nn.Module, h: torch.Tensor, recompute: bool) -> torch.Tensor:
+    """stage(h), optionally keeping only its input for backward and recomputing the rest (activation checkpointing)."""
+    if recompute and torch.is_grad_enabled():
+        return checkpoint(stage, h, use_reentrant=False)
+    return stage(h)

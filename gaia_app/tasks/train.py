@@ -7,9 +7,14 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from hydra.utils import instantiate
+from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
+from gaia_app.lit.compile import CompileNet
+from gaia_app.lit.strategies import build_strategy
 from gaia_app.utils.run_dir import save_resolved_config
 from gaia_app.viz.rerun_logger import rerun_logger_of
 
@@ -45,16 +50,34 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     # the model's own config travels in the checkpoint so generate.py can rebuild it without Hydra
     model.save_hyperparameters({"model_cfg": OmegaConf.to_container(cfg.model, resolve=True)})
     callbacks = instantiate_list(cfg.get("callbacks"))
+    if cfg.get("compile") and cfg.compile.enabled:
+        callbacks.append(CompileNet(backend=cfg.compile.backend, mode=cfg.compile.mode, dynamic=cfg.compile.dynamic))
     loggers = instantiate_list(cfg.get("logger"))
-    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+    trainer_cfg = OmegaConf.to_container(cfg.trainer, resolve=True)
+    trainer_cfg.pop("strategy", None)  # type: ignore[union-attr]  (built from the model's blocks below)
+    strategy = build_strategy(cfg.trainer.get("strategy"), model)
+    trainer: L.Trainer = instantiate(trainer_cfg, callbacks=callbacks, logger=loggers or False, strategy=strategy)
+    check_sweep_launch(trainer)
     return {"datamodule": datamodule, "model": model, "trainer": trainer}
+
+
+def check_sweep_launch(trainer: L.Trainer) -> None:
+    """Refuse `-m` sweeps with a strategy that re-launches train.py per rank: each child would re-run the sweep."""
+    if not (HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN):
+        return
+    launcher = getattr(trainer.strategy, "launcher", None)
+    if launcher is not None and type(launcher).__name__ == "_SubprocessScriptLauncher":
+        raise ValueError(
+            f"hydra -m sweep with {type(trainer.strategy).__name__} on {trainer.num_devices} devices: Lightning would "
+            "re-launch train.py with the sweep's arguments on every rank, so each rank re-runs the whole sweep. Sweep "
+            "through the submitit launcher with srun (one task per device), or run single jobs (docs/distributed.md)")
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Seed, save the resolved config, fit (optionally resuming), validate; return metrics and objects."""
     L.seed_everything(cfg.seed, workers=True)
     run_dir = Path(cfg.paths.output_dir)
-    save_resolved_config(cfg, run_dir)
+    rank_zero_only(save_resolved_config)(cfg, run_dir)  # other ranks share the run dir (Lightning / torchrun)
     objects = build(cfg)
     trainer, model, datamodule = objects["trainer"], objects["model"], objects["datamodule"]
     if (recording := rerun_logger_of(trainer)) is not None:

@@ -59,7 +59,11 @@ def screenshot_recording(rrd: str | Path, png: str | Path, frame: int | None = N
         raise FileNotFoundError(f"no Rerun recording at {rrd}")
     viewer = _spawn_headless()
     try:
-        opened = viewer.open(str(rrd.resolve()))
+        try:
+            opened = viewer.open(str(rrd.resolve()))
+        except ConnectionError as err:  # spawned, then died: no usable Vulkan driver on this machine
+            raise ViewerUnavailable(f"the headless Rerun viewer stopped answering ({err}); without a GPU it needs "
+                                    "Mesa's software Vulkan driver: apt-get install mesa-vulkan-drivers") from err
         if not opened.store_ids:
             raise RuntimeError(f"the Rerun viewer opened no recording from {rrd}")
         timeline = _frame_timeline(viewer, rrd)

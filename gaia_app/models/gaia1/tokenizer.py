@@ -49,6 +49,7 @@ class ImageTokenizer(nn.Module):
             (GAIA-1 §2.2). 0: no projection.
         factorized: True (paper): ViT-VQGAN's projected, L2-normalised look-up; False: plain VQ
             (ablation, `model.net.factorized=false`).
+        checkpointing: recompute the encoder's and decoder's stages in backward (activation checkpointing).
     """
 
     block_types: tuple[type[nn.Module], ...] = (ResBlock,)
@@ -64,13 +65,14 @@ class ImageTokenizer(nn.Module):
         commitment_beta: float = 0.25,
         distill_dim: int = 0,
         factorized: bool = True,
+        checkpointing: bool = False,
     ):
         super().__init__()
         self.downsampling = 2 ** (len(channel_mults) - 1)
         self.codebook_size = codebook_size
-        self.encoder = ConvEncoder(3, latent_dim, channels, channel_mults, blocks_per_stage)
+        self.encoder = ConvEncoder(3, latent_dim, channels, channel_mults, blocks_per_stage, checkpointing)
         self.quantizer = FactorizedVectorQuantizer(latent_dim, codebook_size, code_dim, commitment_beta, factorized)
-        self.decoder = ConvDecoder(latent_dim, 3, channels, channel_mults, blocks_per_stage)
+        self.decoder = ConvDecoder(latent_dim, 3, channels, channel_mults, blocks_per_stage, checkpointing)
         self.distill_dim = distill_dim
         self.distill_head = nn.Conv2d(latent_dim, distill_dim, 1) if distill_dim else None
 

@@ -48,7 +48,8 @@ class VideoEncoder(nn.Module):
     def __init__(self, spatial: int, temporal: int, latent_channels: int, conv_channels: int, conv_mults: Sequence[int],
                  conv_blocks: int, dim: int, depth: int, heads: int, mlp_ratio: float, checkpointing: bool):
         super().__init__()
-        self.conv = ConvEncoder(3, conv_channels * conv_mults[-1], conv_channels, conv_mults, conv_blocks) if conv_mults else None
+        self.conv = ConvEncoder(3, conv_channels * conv_mults[-1], conv_channels, conv_mults, conv_blocks,
+                                checkpointing) if conv_mults else None
         reduction = 2 ** (len(conv_mults) - 1) if conv_mults else 1
         patch = spatial // reduction
         in_channels = conv_channels * conv_mults[-1] if conv_mults else 3
@@ -81,7 +82,7 @@ class VideoDecoder(nn.Module):
         self.stem = nn.Linear(latent_channels, dim)
         self.transformer = SpaceTimeTransformer(dim, depth, heads, mlp_ratio, checkpointing=checkpointing)
         self.untubelet = nn.Linear(dim, temporal * self.patch * self.patch * self.out_channels)
-        self.conv = ConvDecoder(self.out_channels, 3, conv_channels, conv_mults, conv_blocks) if conv_mults else None
+        self.conv = ConvDecoder(self.out_channels, 3, conv_channels, conv_mults, conv_blocks, checkpointing) if conv_mults else None
 
     def forward(self, latents: torch.Tensor) -> torch.Tensor:
         b, t, _, h, w = latents.shape
