@@ -20,7 +20,7 @@ import torch
 from lightning.pytorch.core.optimizer import LightningOptimizer, do_nothing_closure
 from torch import nn
 
-from gaia_app.lit.base import GaiaModule
+from gaia_app.lit.base import GaiaModule, decay_groups
 from gaia_app.nn.discriminator import adaptive_gan_weight, hinge_discriminator_loss, hinge_generator_loss
 
 log = logging.getLogger(__name__)
@@ -162,9 +162,9 @@ class AdversarialModule(GaiaModule):
 
     def configure_optimizers(self) -> Any:
         self.configure_model()
-        optimizers = [self.optim_factory(self.generator_parameters())]
+        optimizers = [self.optim_factory(decay_groups(self.net, self.generator_parameters()))]
         if self.discriminator is not None:
-            optimizers.append(self.optim_factory(self.discriminator.parameters()))
+            optimizers.append(self.optim_factory(decay_groups(self.discriminator)))
         if not self.sched_factory:  # sched=constant composes to an empty node
             return optimizers
         names = ("lr/generator", "lr/discriminator")

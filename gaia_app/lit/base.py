@@ -2,12 +2,29 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import lightning as L
 import torch
 from torch import nn
+
+
+# layers whose weight matrices AdamW decays; everything else (embeddings, positions, null tokens, action
+# projections, norms, biases, bare Parameters) is left alone: decaying a learned null token or a rarely-used
+# embedding row pulls it to zero whatever the data says (GPT-2/minGPT practice)
+DECAYED_LAYERS = (nn.Linear, nn.Conv1d, nn.Conv2d, nn.Conv3d, nn.ConvTranspose1d, nn.ConvTranspose2d, nn.ConvTranspose3d)
+
+
+def decay_groups(module: nn.Module, params: Iterable[nn.Parameter] | None = None) -> list[dict[str, Any]]:
+    """Optimiser groups of `params` (default: the module's trainable ones): DECAYED_LAYERS weights keep the
+    optimiser's weight decay, the rest get 0. A weight shared with an nn.Embedding (tied head) is not decayed."""
+    params = [p for p in (module.parameters() if params is None else params) if p.requires_grad]
+    embeddings = {id(m.weight) for m in module.modules() if isinstance(m, nn.Embedding)}
+    decayed = {id(m.weight) for m in module.modules() if isinstance(m, DECAYED_LAYERS)} - embeddings
+    groups = [{"params": [p for p in params if id(p) in decayed]},
+              {"params": [p for p in params if id(p) not in decayed], "weight_decay": 0.0}]
+    return [group for group in groups if group["params"]]
 
 
 class GaiaModule(L.LightningModule):
@@ -34,8 +51,7 @@ class GaiaModule(L.LightningModule):
 
     def configure_optimizers(self) -> Any:
         self.configure_model()
-        params = [p for p in self.trainer.model.parameters() if p.requires_grad] if self._trainer else self.parameters()
-        optimizer = self.optim_factory(params)
+        optimizer = self.optim_factory(decay_groups(self.trainer.model if self._trainer else self))
         if not self.sched_factory:  # sched=constant composes to an empty node
             return optimizer
         scheduler = self.sched_factory(optimizer)

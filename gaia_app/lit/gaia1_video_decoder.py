@@ -26,7 +26,7 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule, v_target
 from gaia_app.diffusion.video_sampling import sample_window
-from gaia_app.lit.base import GaiaModule
+from gaia_app.lit.base import GaiaModule, decay_groups
 from gaia_app.lit.checkpoint import load_module
 from gaia_app.models.gaia1.decoder_tasks import TASKS, DecoderTask, TaskSampler, drop_tokens, make_task
 from gaia_app.models.gaia1.tokenizer import ImageTokenizer
@@ -101,7 +101,7 @@ class VideoDecoderModule(GaiaModule):
 
     def configure_optimizers(self) -> Any:
         self.configure_model()
-        optimizer = self.optim_factory([p for p in self.net.parameters() if p.requires_grad])
+        optimizer = self.optim_factory(decay_groups(self.net))
         if not self.sched_factory:
             return optimizer
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": self.sched_factory(optimizer), "interval": "step"}}

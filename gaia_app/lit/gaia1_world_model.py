@@ -3,9 +3,12 @@
 Batch: {"tokens": (b, t, n) int64, "actions"?: (b, t, 2) float, "text"?: b lists of t captions}.
 Absent keys mean absent conditions: the conditioner fills in its learned null embeddings.
 
-Loss: eq. 1's cross-entropy on image tokens only, logged as `train/loss` and `val/loss` in
-nats/token with `*/perplexity` = exp(loss). Gradient clipping (1.0, §4.2) is Lightning's
-`trainer.gradient_clip_val`, set by the world-model experiments.
+Loss: eq. 1's cross-entropy on image tokens only, in nats/token with `*/perplexity` = exp(loss).
+`train/loss` is drawn under the conditioning dropout of §4.2 (a random mode per example). Validation
+scores every trained mode on every batch: `val/loss_unconditional`, `val/loss_actions`, `val/loss_text`
+(and `val/loss_both` if its rate is > 0), each only when the batch carries what the mode conditions on;
+`val/loss` is their mean weighted by the training rates, the expectation that `train/loss` estimates.
+Gradient clipping (1.0, §4.2) is Lightning's `trainer.gradient_clip_val`, set by the world-model experiments.
 """
 
 from __future__ import annotations
@@ -17,7 +20,11 @@ import torch
 from torch import nn
 
 from gaia_app.lit.base import GaiaModule
-from gaia_app.models.gaia1.world_model import Conditions, WorldModel, next_token_loss
+from gaia_app.models.gaia1.world_model import DEFAULT_DROP, Conditions, WorldModel, next_token_loss
+
+# mode of DEFAULT_DROP → (streams it drops, streams it needs in the batch)
+MODE_STREAMS = {"unconditional": ({"text", "actions"}, set()), "actions": ({"text"}, {"actions"}),
+                "text": ({"actions"}, {"text"}), "both": (set(), {"text", "actions"})}
 
 
 class WorldModelModule(GaiaModule):
@@ -45,21 +52,46 @@ class WorldModelModule(GaiaModule):
         if self.text_encoder is None and self.text_encoder_factory is not None:
             self.text_encoder = self.text_encoder_factory()
 
-    def conditions(self, batch: dict[str, Any]) -> Conditions:
-        """Condition tokens of a batch; training mode draws the conditioning dropout (GAIA-1 §2.3)."""
-        tokens, captions = batch["tokens"], batch.get("text")
-        # captions without an encoder (text_encoder=null) count as absent text
-        text = self.text_encoder(captions) if captions is not None and self.text_encoder is not None else None
-        return self.world_model.conditioner(tokens.shape[0], tokens.shape[1], text, batch.get("actions"))
+    def encode_text(self, batch: dict[str, Any]) -> torch.Tensor | None:
+        """(b, t, m, e) text embeddings of the batch's captions; None without captions or without an encoder."""
+        captions = batch.get("text")
+        return self.text_encoder(captions) if captions is not None and self.text_encoder is not None else None
 
-    def step(self, batch: dict[str, Any], split: str) -> torch.Tensor:
-        loss = next_token_loss(self.world_model, batch["tokens"], self.conditions(batch))
-        self.log(f"{split}/loss", loss, prog_bar=True, sync_dist=split == "val")
-        self.log(f"{split}/perplexity", loss.detach().exp(), sync_dist=split == "val")
-        return loss
+    def conditions(self, batch: dict[str, Any], text: torch.Tensor | None = None,
+                   force_drop: dict[str, bool] | None = None) -> Conditions:
+        """Condition tokens of a batch; training mode draws the conditioning dropout (GAIA-1 §2.3).
+        text: the batch's encoded captions, if already computed."""
+        tokens = batch["tokens"]
+        text = self.encode_text(batch) if text is None else text
+        return self.world_model.conditioner(tokens.shape[0], tokens.shape[1], text, batch.get("actions"), force_drop)
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
-        return self.step(batch, "train")
+        loss = next_token_loss(self.world_model, batch["tokens"], self.conditions(batch))
+        self.log("train/loss", loss, prog_bar=True)
+        self.log("train/perplexity", loss.detach().exp())
+        return loss
+
+    def mode_losses(self, batch: dict[str, Any]) -> dict[str, torch.Tensor]:
+        """Loss of each conditioning mode trained with a rate > 0 whose streams the batch carries (§4.2)."""
+        text = self.encode_text(batch)
+        present = {name for name, value in (("text", text), ("actions", batch.get("actions"))) if value is not None}
+        rates = dict(zip(DEFAULT_DROP, self.world_model.conditioner.mode_probs.tolist()))
+        losses = {}
+        for mode, (dropped, needed) in MODE_STREAMS.items():
+            if rates[mode] > 0 and needed <= present:
+                force = {name: name in dropped for name in ("text", "actions")}
+                losses[mode] = next_token_loss(self.world_model, batch["tokens"], self.conditions(batch, text, force))
+        if not losses:  # e.g. only the action mode is trained and the batch has no actions: it sees null conditions
+            losses["unconditional"] = next_token_loss(self.world_model, batch["tokens"],
+                                                      self.conditions(batch, text, {"text": True, "actions": True}))
+        return losses
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
-        self.step(batch, "val")
+        losses = self.mode_losses(batch)
+        rates = dict(zip(DEFAULT_DROP, self.world_model.conditioner.mode_probs.tolist()))
+        for mode, loss in losses.items():
+            self.log(f"val/loss_{mode}", loss, sync_dist=True)
+        weights = torch.tensor([rates[mode] or 1.0 for mode in losses], device=batch["tokens"].device)
+        loss = (torch.stack(list(losses.values())) * weights).sum() / weights.sum()
+        self.log("val/loss", loss, prog_bar=True, sync_dist=True)
+        self.log("val/perplexity", loss.exp(), sync_dist=True)

@@ -39,6 +39,8 @@ def test_world_model_experiment_trains_and_logs_perplexity(token_cache: Path, tm
     assert out["trainer"].global_step == 4
     assert math.isclose(float(metrics["val/perplexity"]), math.exp(float(metrics["val/loss"])), rel_tol=1e-4)
     assert 0 < float(metrics["train/loss"]) < 2 * math.log(16)
+    # the cache has actions but no captions: the text mode is not scored
+    assert {"val/loss_unconditional", "val/loss_actions"} <= set(metrics) and "val/loss_text" not in metrics
 
 
 def test_text_captions_reach_the_conditioner() -> None:
@@ -58,3 +60,46 @@ def test_text_captions_reach_the_conditioner() -> None:
     assert encoder.ids("Turn LEFT at the junction") == [5, 2, 18]  # "at", "the" are skipped
     assert encoder.ids("It is night. It is snowing. Turning left.") == [25, 27, 5]  # prefixes: snow, turn
     assert encoder.ids("Hello there") == [1, 0, 0] and encoder.ids(None) == [0, 0, 0]
+
+
+def tiny_module(**net_kw) -> WorldModelModule:
+    from functools import partial
+
+    from gaia_app.models.gaia1.world_model import WorldModel
+
+    module = WorldModelModule(lambda: WorldModel(16, 32, 1, 2, frames=2, text_tokens=3, image_tokens=4, text_dim=8,
+                                                 tie_embeddings=True, **net_kw),
+                              optim=partial(torch.optim.AdamW, weight_decay=0.1),
+                              text_encoder=lambda: LearnedTextEncoder(dim=8, tokens=3))
+    module.configure_model()
+    return module
+
+
+def test_weight_decay_spares_embeddings_norms_biases_and_null_tokens() -> None:
+    module = tiny_module()
+    optimizer = module.configure_optimizers()
+    names = {id(p): n for n, p in module.named_parameters()}
+    groups = {g["weight_decay"]: {names[id(p)] for p in g["params"]} for g in optimizer.param_groups}
+    decayed, spared = groups[0.1], groups[0.0]
+    for name in ("net.conditioner.null_text", "net.conditioner.null_actions", "net.conditioner.action_weight",
+                 "net.conditioner.action_bias", "net.token_embedding.weight", "net.temporal", "net.spatial",
+                 "text_encoder.embedding.weight"):
+        assert name in spared, name
+    assert any(n.endswith("norm1.weight") or "norm" in n for n in spared)
+    assert all(n.endswith(".weight") for n in decayed) and "net.conditioner.text_proj.weight" in decayed
+    assert not any("norm" in n or "embedding" in n for n in decayed)
+    # the tied head shares the embedding's tensor: one parameter, in the spared group only
+    assert len(decayed) + len(spared) == len(names)
+
+
+def test_validation_reports_each_trained_mode() -> None:
+    module = tiny_module()
+    module.eval()
+    tokens = torch.randint(0, 16, (2, 2, 4))
+    full = {"tokens": tokens, "actions": torch.randn(2, 2, 2) * torch.tensor([8.0, 0.03]) + torch.tensor([10.0, 0.0]),
+            "text": [["It is night.", "It is night."], ["It is snowing.", None]]}
+    losses = module.mode_losses(full)
+    assert set(losses) == {"unconditional", "actions", "text"}  # "both" is trained with rate 0
+    assert len({round(float(v), 6) for v in losses.values()}) == 3  # each mode sees other conditions
+    assert set(module.mode_losses({"tokens": tokens, "actions": full["actions"]})) == {"unconditional", "actions"}
+    assert set(module.mode_losses({"tokens": tokens})) == {"unconditional"}

@@ -12,7 +12,7 @@ z_{<t}, z_{t,<i}, c_{≤t} and a_{<t} (eq. 1): the action of step t comes after 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -25,6 +25,11 @@ from gaia_app.nn.transformer import CausalTransformer, TransformerBlock
 STREAMS = ("text", "actions")
 # conditioning modes drawn per training example (GAIA-1 §4.2: 20% / 40% / 40%, no both-conditions share)
 DEFAULT_DROP = {"unconditional": 0.2, "actions": 0.4, "text": 0.4, "both": 0.0}
+# (speed m/s, curvature 1/m) → (a − mean) / std before the linear projection. Raw curvature (~0.01 1/m) is
+# ~1000× smaller than speed (~10 m/s), so through one shared initialisation its signal would vanish. These are
+# the built-in synthetic world's scales (64 clips: mean 12.0 m/s and −0.002 1/m, std 7.7 m/s and 0.031 1/m);
+# data with other speeds sets model.net.action_norm. The values are buffers, so checkpoints carry them.
+DEFAULT_ACTION_NORM = {"mean": (10.0, 0.0), "std": (8.0, 0.03)}
 
 
 @dataclass
@@ -49,11 +54,20 @@ class WorldModelConditioner(nn.Module):
         dim: d. text_dim: e, width of the text encoder's output. text_tokens: m. action_tokens: l.
         drop: probabilities of the training modes {unconditional, actions, text, both} (normalised);
             a dropped stream is replaced by its null embedding, so the sequence layout never changes.
+        action_norm: {"mean": (l,), "std": (l,)} in physical units (DEFAULT_ACTION_NORM when None).
     """
 
     def __init__(self, dim: int, text_dim: int, text_tokens: int, action_tokens: int = 2,
-                 drop: Mapping[str, float] | None = None):
+                 drop: Mapping[str, float] | None = None, action_norm: Mapping[str, Sequence[float]] | None = None):
         super().__init__()
+        norm = dict(action_norm or DEFAULT_ACTION_NORM)
+        mean, std = (torch.tensor([float(v) for v in norm.get(key, ())]) for key in ("mean", "std"))
+        if mean.shape != (action_tokens,) or std.shape != (action_tokens,) or not bool((std > 0).all()):
+            raise ValueError(f"action_norm needs 'mean' and 'std' with {action_tokens} values each, std > 0; "
+                             f"got {dict(norm)}")
+        # persistent: the scales the projection was trained with travel with the weights
+        self.register_buffer("action_mean", mean)
+        self.register_buffer("action_std", std)
         self.text_tokens, self.action_tokens = text_tokens, action_tokens
         self.text_proj = nn.Linear(text_dim, dim)
         # l independent scalar → d linear layers, one per action channel (speed, curvature)
@@ -79,11 +93,19 @@ class WorldModelConditioner(nn.Module):
         null_text = repeat(self.null_text, "m d -> b t m d", b=batch, t=steps)
         null_actions = repeat(self.null_actions, "l d -> b t l d", b=batch, t=steps)
         text_tokens = null_text if text is None else self.text_proj(text)
-        action_tokens = null_actions if actions is None else actions[..., None] * self.action_weight + self.action_bias
+        action_tokens = null_actions if actions is None else self.embed_actions(actions)
         return Conditions(
             text=torch.where(keep["text"][:, None, None, None], text_tokens, null_text),
             actions=torch.where(keep["actions"][:, None, None, None], action_tokens, null_actions),
         )
+
+    def normalise_actions(self, actions: torch.Tensor) -> torch.Tensor:
+        """(…, l) physical (speed m/s, curvature 1/m) → (…, l) in units of the training data's std."""
+        return (actions - self.action_mean) / self.action_std
+
+    def embed_actions(self, actions: torch.Tensor) -> torch.Tensor:
+        """(b, t, l) physical actions → (b, t, l, d): one scalar → d linear map per channel (GAIA-1 §2.1)."""
+        return self.normalise_actions(actions)[..., None] * self.action_weight + self.action_bias
 
     def keep_masks(self, batch: int, force_drop: Mapping[str, bool | torch.Tensor] | None) -> dict[str, torch.Tensor]:
         """(b,) bool per stream: True keeps it. Random modes in training, keep-all in eval, then `force_drop`."""
@@ -109,6 +131,7 @@ class WorldModel(nn.Module):
         text_tokens: m (≥ 1: the last text token of a step predicts that step's first image token).
         image_tokens: n. action_tokens: l. text_dim: e.
         cond_drop: conditioning-mode rates (see WorldModelConditioner). checkpointing: activation checkpointing.
+        action_norm: per-channel mean and std of the actions (see DEFAULT_ACTION_NORM).
         tie_embeddings: share the token embedding with the output head, so "predict the token embedded
             here" needs no separately learned output row per token (helps small token sets).
         previous_frame_shortcut: add to the position that predicts z_{t,i} the embedding of z_{t-1,i}, the
@@ -124,7 +147,8 @@ class WorldModel(nn.Module):
                  frames: int = 26, text_tokens: int = 32, image_tokens: int = 576, action_tokens: int = 2,
                  text_dim: int = 384, mlp_ratio: float = 4.0, dropout: float = 0.0,
                  cond_drop: Mapping[str, float] | None = None, checkpointing: bool = False,
-                 tie_embeddings: bool = False, previous_frame_shortcut: bool = False):
+                 tie_embeddings: bool = False, previous_frame_shortcut: bool = False,
+                 action_norm: Mapping[str, Sequence[float]] | None = None):
         super().__init__()
         if text_tokens < 1:
             raise ValueError("text_tokens must be ≥ 1: the last text token of step t predicts z_{t,1}")
@@ -132,7 +156,7 @@ class WorldModel(nn.Module):
         self.m, self.n, self.l = text_tokens, image_tokens, action_tokens
         self.step_len = text_tokens + image_tokens + action_tokens
         self.previous_frame_shortcut = previous_frame_shortcut
-        self.conditioner = WorldModelConditioner(dim, text_dim, text_tokens, action_tokens, cond_drop)
+        self.conditioner = WorldModelConditioner(dim, text_dim, text_tokens, action_tokens, cond_drop, action_norm)
         self.token_embedding = nn.Embedding(vocab_size, dim)
         self.temporal = nn.Parameter(torch.zeros(frames, dim))  # shared by all tokens of a step
         self.spatial = nn.Parameter(torch.zeros(self.step_len, dim))  # position within a step
