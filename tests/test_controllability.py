@@ -2,12 +2,24 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from gaia_app.data.synthetic import SyntheticClipDataset
-from gaia_app.eval.controllability import action_error, attribute_accuracy, probe_clips, train_probes
+from gaia_app.eval.controllability import (
+    action_error,
+    action_errors,
+    attribute_shares,
+    load_probes,
+    phase_clips,
+    probe_clips,
+    save_probes,
+    train_probes,
+)
+from gaia_app.eval.intervals import mean_interval, share_interval, t_quantile
 from gaia_app.models.probes import ATTRIBUTES, InverseDynamicsProbe, SceneAttributeProbe
+from gaia_app.tasks.controllability import drive, probe_training_data, random_command
 
 
 @pytest.fixture(scope="module")
@@ -40,6 +52,9 @@ def test_action_error_scores_only_the_steps_into_generated_frames() -> None:
     commanded[:, 3, 0] = 12.0  # a_3 → frame 4: speed off by 2 on one of the two scored steps
     assert action_error(ConstantDynamics(), frames, commanded, start=3) == pytest.approx(
         {"speed_mae": 1.0, "curvature_mae": 0.0})
+    commanded[1, 3, 1] = 0.03  # the second sequence's curvature is off by 0.02 on one of two steps
+    per_sequence = action_errors(ConstantDynamics(), frames, commanded, start=3)
+    torch.testing.assert_close(per_sequence, torch.tensor([[1.0, 0.0], [1.0, 0.01]]))
 
 
 class FixedScene(SceneAttributeProbe):
@@ -49,7 +64,80 @@ class FixedScene(SceneAttributeProbe):
         return {"time_of_day": logits}
 
 
-def test_attribute_accuracy_is_the_share_of_frames_on_target() -> None:
-    frames = torch.zeros(2, 3, 3, 8, 8)  # 6 frames: night, day, night, day, night, day
+def test_attribute_shares_are_per_sequence_shares_of_frames_on_target() -> None:
+    frames = torch.zeros(2, 3, 3, 8, 8)  # 6 frames: night, day, night | day, night, day
     night = ATTRIBUTES["time_of_day"].index("night")
-    assert attribute_accuracy(FixedScene(), frames, {"time_of_day": torch.full((2,), night)}) == {"time_of_day": 0.5}
+    shares = attribute_shares(FixedScene(), frames, {"time_of_day": torch.full((2,), night)})
+    torch.testing.assert_close(shares["time_of_day"], torch.tensor([2 / 3, 1 / 3]))
+
+
+def test_intervals_match_known_values() -> None:
+    assert t_quantile(1000) == pytest.approx(1.9623, abs=1e-3) and t_quantile(9) == pytest.approx(2.2622, abs=2e-3)
+    assert t_quantile(31) == pytest.approx(2.0395, abs=1e-3)
+    est = mean_interval([1.0, 2.0, 3.0, 4.0])  # sd 1.291, t(3) = 3.182
+    assert est.mean == 2.5 and est.half_width == pytest.approx(3.182 * 1.2910 / 2, rel=1e-2)
+    wilson = share_interval(8, 10)  # textbook Wilson interval: [0.490, 0.943]
+    assert (wilson.low, wilson.high) == pytest.approx((0.490, 0.943), abs=2e-3)
+    assert share_interval(0, 16).low == 0.0 and 0 < share_interval(0, 16).high < 0.25
+    with pytest.raises(ValueError):
+        share_interval(3, 2)
+
+
+def test_probes_round_trip_through_safetensors_and_refuse_another_size(tmp_path) -> None:
+    torch.manual_seed(0)
+    dynamics, scene = InverseDynamicsProbe(), SceneAttributeProbe()
+    save_probes(tmp_path, dynamics, scene, {"image_size": [32, 48], "rate": 6.25})
+    loaded, loaded_scene, info = load_probes(tmp_path, (32, 48), 6.25)
+    pair, frames = torch.randn(2, 2, 3, 32, 48), torch.randn(2, 3, 32, 48)
+    torch.testing.assert_close(loaded(pair), dynamics.eval()(pair))
+    torch.testing.assert_close(loaded_scene(frames)["weather"], scene.eval()(frames)["weather"])
+    with pytest.raises(ValueError, match=r"probes trained for image size \[32, 48\] at 6.25 Hz"):
+        load_probes(tmp_path, (64, 112), 6.25)
+    (tmp_path / "probes.safetensors").write_bytes(b"not a tensor file")
+    with pytest.raises(ValueError, match="probes.safetensors: not a readable safetensors file"):
+        load_probes(tmp_path, (32, 48), 6.25)
+    with pytest.raises(FileNotFoundError, match="probes.safetensors is missing"):
+        load_probes(tmp_path / "nowhere", (32, 48), 6.25)
+
+
+def test_drive_switches_to_the_commanded_actions_at_step_t0() -> None:
+    source = np.stack([np.arange(13.0), np.zeros(13)], axis=1)  # 25 Hz: 13 source frames = steps 0..3 at 6.25 Hz
+    per_step = np.array([[0.0, 0.0], [0.0, 0.0], [20.0, 0.01], [30.0, 0.02]])
+    driven = drive(source, per_step, t0=2, rate=6.25)
+    np.testing.assert_array_equal(driven[:8], source[:8])  # steps 0 and 1 keep the source's own actions
+    np.testing.assert_array_equal(driven[8:12], np.tile([20.0, 0.01], (4, 1)))
+    np.testing.assert_array_equal(driven[12], [30.0, 0.02])
+
+
+def test_random_commands_cover_the_presets_and_keep_the_past() -> None:
+    rng = np.random.default_rng(0)
+    source = np.stack([np.linspace(8, 9, 33), np.full(33, 0.001)], axis=1)
+    commands = [random_command(rng, source, 3, 9, 6.25) for _ in range(200)]
+    for cmd in commands:
+        np.testing.assert_allclose(cmd[:3], source[[0, 4, 8]])
+        assert cmd.shape == (9, 2) and (cmd[:, 0] >= 0).all() and len(set(cmd[3:, 1])) == 1
+    curvatures = np.array([c[3, 1] for c in commands])
+    accelerations = np.array([(c[4, 0] - c[3, 0]) * 6.25 for c in commands])
+    assert curvatures.min() < -0.02 and curvatures.max() > 0.02 and (curvatures == 0).mean() > 0.2
+    assert accelerations.min() < -4 and accelerations.max() > 2
+
+
+def test_driven_probe_clips_follow_their_commands() -> None:
+    data = probe_training_data(seed=3, count=4, height=32, width=48, frames=5, rate=6.25, driven_share=1.0)
+    assert data.frames.shape == (16, 5, 3, 32, 48)  # 4 clips × their 4 phases at 6.25 Hz
+    # each clip leaves its policy for one constant curvature, which all its phases end on
+    last = data.actions.view(4, 4, 5, 2)[:, :, -1, 1]
+    assert torch.equal(last, last[:, :1].expand(4, 4))
+    weathers = probe_training_data(seed=3, count=24, height=16, width=16, frames=2, rate=6.25, driven_share=0.0)
+    assert len(set(weathers.labels["weather"][:, 0].tolist())) == 4  # uniform mix: snow and fog appear too
+
+
+def test_phase_clips_label_each_step_with_the_mean_action_it_spans() -> None:
+    world = SyntheticClipDataset(num_clips=1, seed=2, height=16, width=16, clip_len=12)
+    clip = world[0]
+    phases = phase_clips(clip, rate=6.25, frames=3)
+    assert phases.frames.shape == (4, 3, 3, 16, 16)
+    torch.testing.assert_close(phases.frames[1, 2], probe_clips([clip.select_frames([9])], 6.25, 1).frames[0, 0])
+    torch.testing.assert_close(phases.actions[2, 1], torch.from_numpy(clip.actions[6:10]).mean(dim=0))
+    with pytest.raises(ValueError, match="needs actions and 16 frames"):
+        phase_clips(clip, rate=6.25, frames=4)

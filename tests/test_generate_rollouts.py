@@ -179,20 +179,30 @@ def test_a_checkpoint_of_the_wrong_component_is_named(checkpoints, tmp_path: Pat
 
 
 def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_path: Path) -> None:
-    results = run(checkpoints, tmp_path, "mode=controllability", "seconds=0.5", "controllability.probe_clips=4",
-                  "controllability.probe_steps=3", "controllability.contexts=2", "controllability.commands=[[brake,left]]",
-                  "controllability.prompts.time_of_day=[night]", "~controllability.prompts.weather", "controllability.text_repeats=2",
-                  "controllability.real_clips=4", decoder=False)
+    args = ["mode=controllability", "seconds=0.5", "controllability.probe_clips=4", "controllability.probe_steps=3",
+            "controllability.contexts=2", "controllability.commands=[[brake,left],[keep,right]]",
+            "controllability.prompts.time_of_day=[night]", "~controllability.prompts.weather",
+            "controllability.text_repeats=2", "controllability.real_clips=6"]
+    results = run(checkpoints, tmp_path / "first", *args, decoder=False)
     rows = results["actions"]["rows"]
-    assert set(rows) == {"ceiling (real, re-simulated)", "model (action-conditioned)", "floor (actions dropped)"}
-    assert all(np.isfinite(list(row.values())).all() for row in rows.values())
+    assert set(rows) == {"ceiling", "model", "floor", "reference"}
+    for row in rows.values():
+        assert row["speed_mae"]["n"] == 2 and row["speed_mae"]["low"] <= row["speed_mae"]["mean"] <= row["speed_mae"]["high"]
+        assert np.isfinite(row["curvature_mae"]["mean"]) and np.shape(row["per_command"]) == (2, 2)
+    assert set(results["actions"]["checks"]) == {"speed_mae", "curvature_mae"}
     text = results["text"]
-    assert text["targets"] == ["time_of_day=night"] and set(text["rows"]) == {
-        "ceiling (real frames)", "model (text-prompted)", "floor (no text)"}
-    assert 0 <= text["rows"]["model (text-prompted)"]["time_of_day=night"] <= 1
-    table = (tmp_path / "controllability.md").read_text()
-    assert "| model (action-conditioned) |" in table and "| chance | 0.33 |" in table
-    assert json.loads((tmp_path / "controllability.json").read_text())["actions"]["contexts"] == 2
+    assert text["targets"] == ["time_of_day=night"] and set(text["rows"]) == {"ceiling", "model", "floor"}
+    model = text["rows"]["model"]["time_of_day=night"]
+    assert model["n"] == 2 and 0 <= model["low"] <= model["mean"] <= model["high"] <= 1
+    table = (tmp_path / "first" / "controllability.md").read_text()
+    assert "| model (action-conditioned) |" in table and "| chance | 0.33 |" in table and "probe check" in table
+    assert json.loads((tmp_path / "first" / "controllability.json").read_text())["actions"]["contexts"] == 2
+    # the probes are saved and reused: a second run with them trains nothing and scores the real rows identically
+    probes = tmp_path / "first" / "probes"
+    assert (probes / "probes.safetensors").is_file() and (probes / "probes.yaml").is_file()
+    again = run(checkpoints, tmp_path / "second", *args, f"controllability.probes={probes}", decoder=False)
+    assert again["actions"]["rows"]["reference"] == rows["reference"]
+    assert again["actions"]["rows"]["ceiling"] == rows["ceiling"]
 
 
 def test_gallery_strips_and_headless_viewer_screenshot(checkpoints, tmp_path: Path) -> None:

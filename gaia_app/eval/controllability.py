@@ -16,14 +16,19 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 from tqdm.auto import tqdm
 
 from gaia_app.data.clip import Clip
 from gaia_app.data.transforms import resample_clip, to_float
 from gaia_app.models.probes import ATTRIBUTES, InverseDynamicsProbe, SceneAttributeProbe
+from gaia_app.utils.run_dir import atomic_write_bytes, atomic_write_text
+
+PROBE_WEIGHTS, PROBE_INFO = "probes.safetensors", "probes.yaml"
 
 
 @dataclass
@@ -60,13 +65,61 @@ def probe_clips(clips: Sequence[Clip], rate: float, frames: int) -> ProbeClips:
     return ProbeClips(torch.stack(out["frames"]), torch.stack(out["actions"]), labels)
 
 
-def train_probes(data: ProbeClips, steps: int = 300, batch: int = 32, lr: float = 2e-3, seed: int = 0,
+def phase_clips(clip: Clip, rate: float, frames: int) -> ProbeClips:
+    """Every phase of a clip at `rate`, first camera: with stride s = clip fps / rate (an integer), sequence o
+    takes source frames o, o + s, …, o + (frames − 1) s, for o = 0 … s − 1. Each step's action is the mean of the s
+    source actions it spans, which is what moves the ego from one frame to the next. For probe training: s times
+    the frame pairs of one rendered clip."""
+    stride = clip.fps / rate
+    if abs(stride - round(stride)) > 1e-6:
+        raise ValueError(f"phase_clips: clip '{clip.clip_id}' at {clip.fps:g} Hz is not a whole multiple of {rate:g} Hz")
+    stride = round(stride)
+    if clip.actions is None or clip.num_frames < frames * stride:
+        raise ValueError(f"phase_clips: clip '{clip.clip_id}' needs actions and {frames * stride} frames "
+                         f"({frames} at {rate:g} Hz, every phase), has {clip.num_frames}")
+    labels, source = attribute_labels(clip), torch.from_numpy(clip.actions.astype(np.float32))
+    out = {"frames": [], "actions": [], "labels": []}
+    for offset in range(stride):
+        index = offset + stride * np.arange(frames)
+        out["frames"].append(to_float(torch.from_numpy(clip.frames[0, index])))
+        # the action between frames index[k] and index[k + 1]: the mean over the s source frames in between
+        out["actions"].append(torch.stack([source[i : i + stride].mean(dim=0) for i in index]))
+        out["labels"].append({name: torch.from_numpy(values[index]) for name, values in labels.items()})
+    return ProbeClips(torch.stack(out["frames"]), torch.stack(out["actions"]),
+                      {name: torch.stack([lab[name] for lab in out["labels"]]) for name in ATTRIBUTES})
+
+
+def cat_probe_clips(parts: Sequence[ProbeClips]) -> ProbeClips:
+    """The clips of several ProbeClips, in order."""
+    return ProbeClips(torch.cat([p.frames for p in parts]), torch.cat([p.actions for p in parts]),
+                      {name: torch.cat([p.labels[name] for p in parts]) for name in ATTRIBUTES})
+
+
+def augment_pairs(pair: torch.Tensor, actions: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mirror half of the pairs (b, 2, 3, H, W) left–right and negate their curvature: a left turn seen in a
+    mirror is a right turn, so every scene teaches both signs (weather, time of day and lights are unchanged)."""
+    flip = torch.rand(len(pair), generator=generator) < 0.5
+    pair = torch.where(flip[:, None, None, None, None], pair.flip(-1), pair)
+    return pair, torch.where(flip[:, None], actions * torch.tensor([1.0, -1.0]), actions)
+
+
+def jitter(pair: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """Random gain and offset per pair (both frames alike): the inverse-dynamics probe must read motion, not the
+    brightness of a scene it has memorised. Not for the scene probe, for which brightness is time of day."""
+    gain = torch.empty(len(pair), 1, 1, 1, 1).uniform_(0.6, 1.4, generator=generator)
+    offset = torch.empty(len(pair), 1, 1, 1, 1).uniform_(-0.2, 0.2, generator=generator)
+    return ((pair + 1) * gain - 1 + offset).clamp(-1, 1)
+
+
+def train_probes(data: ProbeClips, steps: int = 1500, batch: int = 32, lr: float = 2e-3, seed: int = 0,
                  progress: bool = True) -> tuple[InverseDynamicsProbe, SceneAttributeProbe, dict[str, float]]:
-    """Fit both probes on random frame pairs / frames of `data`; returns them (eval mode) and their first/last losses."""
+    """Fit both probes on random frame pairs / frames of `data` (AdamW, cosine decay to lr/20); returns them in
+    eval mode and their first/last losses."""
     generator = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
     dynamics, scene = InverseDynamicsProbe(), SceneAttributeProbe()
     optim = torch.optim.AdamW([*dynamics.parameters(), *scene.parameters()], lr=lr, weight_decay=1e-4)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optim, max(1, steps), eta_min=lr / 20)
     n, t = data.frames.shape[:2]
     losses = []
     for _ in tqdm(range(steps), desc="probes", disable=not progress):
@@ -74,32 +127,77 @@ def train_probes(data: ProbeClips, steps: int = 300, batch: int = 32, lr: float 
         step = torch.randint(1, t, (batch,), generator=generator)
         pair = torch.stack([data.frames[clip, step - 1], data.frames[clip, step]], dim=1)
         labels = {name: data.labels[name][clip, step] for name in ATTRIBUTES}
-        loss = dynamics.loss(pair, data.actions[clip, step - 1]) + scene.loss(data.frames[clip, step], labels)
+        pair, actions = augment_pairs(pair, data.actions[clip, step - 1], generator)
+        loss = dynamics.loss(jitter(pair, generator), actions) + scene.loss(pair[:, 1], labels)
         optim.zero_grad()
         loss.backward()
         optim.step()
+        schedule.step()
         losses.append(float(loss.detach()))
     return dynamics.eval(), scene.eval(), {"first_loss": float(np.mean(losses[:10])), "last_loss": float(np.mean(losses[-10:]))}
 
 
 @torch.no_grad()
-def action_error(probe: InverseDynamicsProbe, frames: torch.Tensor, commanded: torch.Tensor, start: int) -> dict[str, float]:
-    """Mean absolute error of the probed actions against `commanded`, over the steps into frames start..t-1.
-
-    frames: (b, t, 3, H, W); commanded: (b, t, 2) per-step actions (a_{i-1} leads to frame i); start ≥ 1.
+def action_errors(probe: InverseDynamicsProbe, frames: torch.Tensor, commanded: torch.Tensor, start: int) -> torch.Tensor:
+    """(b, 2) mean absolute error per sequence of the probed (speed, curvature) against `commanded`, over the
+    steps into frames start..t-1. frames: (b, t, 3, H, W); commanded: (b, t, 2) (a_{i-1} leads to frame i); start ≥ 1.
     """
     pairs = torch.stack([frames[:, start - 1 : -1], frames[:, start:]], dim=2)  # (b, t - start, 2, 3, H, W)
     probed = probe(pairs.flatten(0, 1)).view(*pairs.shape[:2], 2)
-    error = (probed - commanded[:, start - 1 : -1]).abs()
-    return {"speed_mae": float(error[..., 0].mean()), "curvature_mae": float(error[..., 1].mean())}
+    return (probed - commanded[:, start - 1 : -1]).abs().mean(dim=1)
 
 
 @torch.no_grad()
-def attribute_accuracy(probe: SceneAttributeProbe, frames: torch.Tensor, targets: dict[str, torch.Tensor]) -> dict[str, float]:
-    """Share of frames (b, f, 3, H, W) whose probed class equals targets {attribute: (b,) class index}."""
+def attribute_shares(probe: SceneAttributeProbe, frames: torch.Tensor, targets: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Per sequence, the share of its frames (b, f, 3, H, W) whose probed class equals targets {attribute: (b,)}
+    → {attribute: (b,) in [0, 1]}."""
     logits = probe(frames.flatten(0, 1))
-    out = {}
-    for name, target in targets.items():
-        predicted = logits[name].argmax(-1).view(frames.shape[:2])
-        out[name] = float((predicted == target[:, None]).float().mean())
-    return out
+    return {name: (logits[name].argmax(-1).view(frames.shape[:2]) == target[:, None]).float().mean(dim=1)
+            for name, target in targets.items()}
+
+
+def save_probes(folder: str | Path, dynamics: InverseDynamicsProbe, scene: SceneAttributeProbe, info: dict) -> None:
+    """Write both probes as `probes.safetensors` (weights only) and `probes.yaml` (what they were trained on)."""
+    from safetensors.torch import save as save_tensors
+
+    state = {f"{name}.{key}": value.contiguous() for name, probe in (("dynamics", dynamics), ("scene", scene))
+             for key, value in probe.state_dict().items()}
+    folder = Path(folder)
+    atomic_write_bytes(folder / PROBE_WEIGHTS, save_tensors(state))
+    atomic_write_text(folder / PROBE_INFO, yaml.safe_dump(info, sort_keys=False))
+
+
+def load_probes(folder: str | Path, image_size: tuple[int, int], rate: float) -> tuple[InverseDynamicsProbe, SceneAttributeProbe, dict]:
+    """Probes saved by `save_probes`; they must have been trained at this image size and rate."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    folder = Path(folder)
+    weights, info_path = folder / PROBE_WEIGHTS, folder / PROBE_INFO
+    for path in (weights, info_path):
+        if not path.is_file():
+            raise FileNotFoundError(f"controllability.probes={folder}: {path.name} is missing (train probes by leaving "
+                                    f"controllability.probes=null; the run dir's probes/ folder can be reused)")
+    info = yaml.safe_load(info_path.read_text()) or {}
+    if tuple(info.get("image_size", ())) != tuple(image_size) or float(info.get("rate", -1)) != float(rate):
+        raise ValueError(f"{info_path}: probes trained for image size {info.get('image_size')} at {info.get('rate')} Hz; "
+                         f"this pipeline needs {list(image_size)} at {rate:g} Hz")
+    try:
+        state = load_file(str(weights))
+    except (SafetensorError, OSError) as error:
+        raise ValueError(f"{weights}: not a readable safetensors file ({error})") from error
+    probes = (InverseDynamicsProbe(), SceneAttributeProbe())
+    for name, probe in zip(("dynamics", "scene"), probes):
+        part = {key[len(name) + 1:]: value for key, value in state.items() if key.startswith(f"{name}.")}
+        try:
+            probe.load_state_dict(part)
+        except RuntimeError as error:
+            raise ValueError(f"{weights}: the {name} probe does not match this version's architecture ({error})") from error
+        probe.eval()
+    return probes[0], probes[1], info
+
+
+def action_error(probe: InverseDynamicsProbe, frames: torch.Tensor, commanded: torch.Tensor, start: int) -> dict[str, float]:
+    """`action_errors` averaged over the sequences: {"speed_mae": m/s, "curvature_mae": 1/m}."""
+    errors = action_errors(probe, frames, commanded, start)
+    return {"speed_mae": float(errors[:, 0].mean()), "curvature_mae": float(errors[:, 1].mean())}

@@ -1,17 +1,27 @@
 """`generate.py mode=controllability`: how well rollouts follow commanded actions and text prompts.
 
-Protocol (gaia_app/eval/controllability.py has the metrics), all in one run:
-1. Probes are trained on synthetic clips of the world with `controllability.probe_seed`.
-2. Actions: `controllability.contexts` clips of the world with `context.seed` give the context; each of
+Protocol (gaia_app/eval/controllability.py has the metrics, gaia_app/eval/intervals.py the 95 % intervals), in
+one run:
+1. Probes: loaded from `controllability.probes` (a folder written by an earlier run), or trained on clips of
+   the world `controllability.probe_seed` (weather and time of day drawn uniformly; `driven_share` of the clips
+   leave the policy at a random step and follow a random open-loop command, the situation the ceiling
+   re-simulates) and saved to the run dir's probes/.
+2. Actions: `controllability.contexts` clips of the world `context.seed` give the contexts; each command of
    `controllability.commands` (speed and curvature presets) is commanded on the future steps.
-   model   = mode=action rollouts with those commands;
-   floor   = mode=video rollouts (no actions) scored against the same commands;
-   ceiling = the same scenes re-simulated by the synthetic world with the commanded actions.
-3. Text: each prompt of `controllability.prompts` (attribute → value) generates from text alone.
+   ceiling   = the same scenes re-simulated by the synthetic world with the commanded actions;
+   model     = mode=action rollouts with those commands;
+   floor     = mode=video rollouts (no actions) scored against the same commands;
+   reference = the real continuation under the clip's own policy, scored against the same commands: what a
+               perfect model that ignored the commands would score. It checks the probes without any model:
+               they can judge adherence only if the ceiling's error is at most half of it.
+   Intervals are over contexts (each context's error averaged over the commands).
+3. Text: each prompt of `controllability.prompts` (attribute → values) generates from text alone.
+   ceiling = real held-out clips that have the value (world drawn uniformly over weather and time of day);
    model   = mode=text_only rollouts with the prompt;
-   floor   = unconditional rollouts scored against the same targets;
-   ceiling = the probe on real held-out frames that have that value.
-Writes controllability.json and controllability.md (the table) into the run dir.
+   floor   = unconditional rollouts (one shared set) scored against each target.
+   A rollout (or real clip) reads a value when most of its frames are probed as that value; the table gives
+   the share of rollouts that read the prompted value, with Wilson intervals.
+Writes controllability.json, controllability.md and probes/ into the run dir.
 """
 
 from __future__ import annotations
@@ -25,38 +35,83 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from gaia_app.data.clip import Clip
 from gaia_app.data.synthetic import SyntheticClipDataset
 from gaia_app.data.synthetic.generate import SyntheticSample
-from gaia_app.data.synthetic.scenario import Scenario
-from gaia_app.eval.controllability import ProbeClips, action_error, attribute_accuracy, probe_clips, train_probes
+from gaia_app.data.synthetic.scenario import TIMES_OF_DAY, WEATHERS, Scenario
+from gaia_app.eval.controllability import (
+    ProbeClips,
+    action_errors,
+    attribute_shares,
+    cat_probe_clips,
+    load_probes,
+    phase_clips,
+    probe_clips,
+    save_probes,
+    train_probes,
+)
+from gaia_app.eval.intervals import mean_interval, share_interval
 from gaia_app.models.probes import ATTRIBUTES
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
-from gaia_app.pipelines.gaia1_inputs import future_actions
+from gaia_app.pipelines.gaia1_inputs import MAX_SPEED, future_actions
 from gaia_app.tasks.rollout import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 
 SOURCE_FPS = 25.0
+# every weather and time of day equally often: probes see enough snow and night, ceilings have clips of each value
+UNIFORM_MIX = {"weather_mix": dict.fromkeys(WEATHERS, 1.0), "time_of_day_mix": dict.fromkeys(TIMES_OF_DAY, 1.0)}
+# open-loop commands drawn for the probes' driven clips: acceleration (m/s²) and curvature (1/m) ranges that
+# contain every preset of gaia_app.pipelines.gaia1_inputs (brake −4, accelerate +2, left/right ±0.02)
+PROBE_ACCELERATION, PROBE_CURVATURE = (-4.5, 2.5), (-0.05, 0.05)
+
+
+def world(seed: int, count: int, height: int, width: int, frames: int, rate: float, scenario: Scenario | None = None,
+          balanced: bool = False) -> SyntheticClipDataset:
+    """Clips 0..count-1 of the synthetic world `seed`, long enough for `frames` frames at `rate`.
+    balanced: weather and time of day drawn uniformly instead of the world's default mix."""
+    clip_len = math.ceil((frames - 1) / rate * SOURCE_FPS) + 1
+    return SyntheticClipDataset(num_clips=count, seed=seed, height=height, width=width, clip_len=clip_len,
+                                scenario=scenario, **(UNIFORM_MIX if balanced else {}))
 
 
 def world_samples(seed: int, count: int, height: int, width: int, frames: int, rate: float,
                   scenario: Scenario | None = None, start: int = 0) -> list[SyntheticSample]:
-    """Samples start..start+count-1 of the synthetic world `seed` (clip + simulation, e.g. for instance masks),
-    long enough for `frames` frames at `rate`."""
-    clip_len = math.ceil((frames - 1) / rate * SOURCE_FPS) + 1
-    world = SyntheticClipDataset(num_clips=start + count, seed=seed, height=height, width=width, clip_len=clip_len,
-                                 scenario=scenario)
-    return [world.sample(i) for i in range(start, start + count)]
+    """Samples start..start+count-1 of the synthetic world `seed` (clip + simulation, e.g. for instance masks)."""
+    clips = world(seed, start + count, height, width, frames, rate, scenario)
+    return [clips.sample(i) for i in range(start, start + count)]
 
 
 def world_clips(seed: int, count: int, height: int, width: int, frames: int, rate: float,
-                scenario: Scenario | None = None, start: int = 0) -> list:
-    """The clips of `world_samples`."""
-    return [s.clip for s in world_samples(seed, count, height, width, frames, rate, scenario, start)]
+                start: int = 0, balanced: bool = False) -> list:
+    """The clips start..start+count-1 of the synthetic world `seed`."""
+    clips = world(seed, start + count, height, width, frames, rate, balanced=balanced)
+    return [clips[i] for i in range(start, start + count)]
+
+
+def drive(source: np.ndarray, actions: np.ndarray, t0: int, rate: float) -> np.ndarray:
+    """25 Hz actions (T, 2): the source's own before step t0, then the per-step `actions` (t, 2) of each step
+    (a step's action covers the source frames up to the next step)."""
+    step = np.floor(np.arange(len(source)) * rate / SOURCE_FPS + 1e-9).astype(int)
+    return np.where((step >= t0)[:, None], actions[np.minimum(step, len(actions) - 1)], source)
+
+
+def driven_clip(seed: int, index: int, height: int, width: int, actions: np.ndarray, t0: int, rate: float,
+                balanced: bool = False) -> Clip:
+    """Clip `index` of the world `seed`, its scene driven open-loop by per-step `actions` (t, 2) from step t0 on."""
+    frames = len(actions)
+    source = world(seed, index + 1, height, width, frames, rate, balanced=balanced).simulated_actions(index)
+    driven = Scenario(ego_actions=drive(source.astype(np.float64), actions, t0, rate))
+    return world(seed, index + 1, height, width, frames, rate, driven, balanced)[index]
+
+
+def resimulate(seed: int, index: int, height: int, width: int, actions: np.ndarray, t0: int, rate: float) -> ProbeClips:
+    """The `driven_clip` at `rate`: what a perfect model would show for these actions."""
+    return probe_clips([driven_clip(seed, index, height, width, actions, t0, rate)], rate, len(actions))
 
 
 def commanded_actions(contexts: ProbeClips, t0: int, frames: int, rate: float,
                       commands: list[tuple[str, str]]) -> torch.Tensor:
-    """(C·N, t0 + f, 2): each context's own actions, then each command's presets from its last speed."""
+    """(C·N, t0 + f, 2): each context's own actions, then each command's presets from its last speed (command-major)."""
     rows = []
     for speed, curvature in commands:
         for past in contexts.actions[:, :t0].numpy():
@@ -65,18 +120,47 @@ def commanded_actions(contexts: ProbeClips, t0: int, frames: int, rate: float,
     return torch.from_numpy(np.stack(rows)).float()
 
 
-def resimulate(seed: int, index: int, height: int, width: int, actions: np.ndarray, t0: int, rate: float) -> torch.Tensor:
-    """The scene of clip `index` driven open-loop by per-step `actions` (t, 2) from step t0 on → frames (t, 3, H, W).
+def random_command(rng: np.random.Generator, source: np.ndarray, t0: int, frames: int, rate: float) -> np.ndarray:
+    """(frames, 2) per-step actions: the source's own (25 Hz, sampled at each step) before t0, then a random constant
+    acceleration and curvature (straight a third of the time) from the speed at step t0 − 1."""
+    own = source[np.minimum(np.round(np.arange(frames) * SOURCE_FPS / rate).astype(int), len(source) - 1)]
+    elapsed = np.arange(1, frames - t0 + 1) / rate
+    speed = np.clip(own[t0 - 1, 0] + rng.uniform(*PROBE_ACCELERATION) * elapsed, 0.0, MAX_SPEED)
+    curvature = 0.0 if rng.random() < 1 / 3 else rng.uniform(*PROBE_CURVATURE)
+    return np.concatenate([own[:t0], np.stack([speed, np.full_like(speed, curvature)], axis=1)]).astype(np.float64)
 
-    Source frames before step t0 keep the clip's own 25 Hz actions; later ones hold the commanded action of
-    their step (a step's action covers the source frames up to the next step).
-    """
-    frames = len(actions)
-    source = world_clips(seed, 1, height, width, frames, rate, start=index)[0].actions.astype(np.float64)
-    step = np.floor(np.arange(len(source)) * rate / SOURCE_FPS + 1e-9).astype(int)
-    driven = np.where((step >= t0)[:, None], actions[np.minimum(step, frames - 1)], source)
-    clip = world_clips(seed, 1, height, width, frames, rate, Scenario(ego_actions=driven), start=index)[0]
-    return probe_clips([clip], rate, frames).frames[0]
+
+def probe_training_data(seed: int, count: int, height: int, width: int, frames: int, rate: float,
+                        driven_share: float) -> ProbeClips:
+    """Every phase (gaia_app.eval.controllability.phase_clips) of `count` clips of the world `seed` (weather and time
+    of day uniform): `frames` steps at `rate` each. `driven_share` of the clips switch at a random step t0 ∈
+    [1, frames − 1] to a random open-loop command."""
+    rng = np.random.default_rng([seed, 1])
+    clips = world(seed, count, height, width, frames + 1, rate, balanced=True)  # + 1 step: room for every phase
+    parts = []
+    for i in range(count):
+        if rng.random() < driven_share:
+            t0 = int(rng.integers(1, frames))
+            actions = random_command(rng, clips.simulated_actions(i).astype(np.float64), t0, frames + 1, rate)
+            clip = driven_clip(seed, i, height, width, actions, t0, rate, balanced=True)
+        else:
+            clip = clips[i]
+        parts.append(phase_clips(clip, rate, frames))
+    return cat_probe_clips(parts)
+
+
+def probes_for(cfg: DictConfig, pipeline: Gaia1Pipeline, frames: int, run_dir: Path) -> tuple[Any, Any, dict]:
+    """Load `controllability.probes`, or train probes for this pipeline's image size and rate and save them."""
+    c, size, rate = cfg.controllability, tuple(pipeline.image_size), float(pipeline.rate)
+    if c.probes:
+        return load_probes(c.probes, size, rate)
+    data = probe_training_data(c.probe_seed, c.probe_clips, *size, frames, rate, c.driven_share)
+    dynamics, scene, fit = train_probes(data, c.probe_steps, seed=cfg.seed)
+    info = {"image_size": list(size), "rate": rate, "frames": frames, "probe_seed": int(c.probe_seed),
+            "probe_clips": int(c.probe_clips), "probe_steps": int(c.probe_steps), "driven_share": float(c.driven_share),
+            "fit": fit}
+    save_probes(run_dir / "probes", dynamics, scene, info)
+    return dynamics, scene, info
 
 
 def rollout_frames(pipeline: Gaia1Pipeline, context: torch.Tensor | None, frames: int, batch: int,
@@ -91,8 +175,17 @@ def rollout_frames(pipeline: Gaia1Pipeline, context: torch.Tensor | None, frames
     return pipeline.render(sampled, generator)[0]
 
 
+def error_row(probe, video: torch.Tensor, commanded: torch.Tensor, start: int, commands: int) -> dict[str, Any]:
+    """Speed and curvature MAE of a command-major batch: 95 % intervals over contexts, and the mean per command."""
+    errors = action_errors(probe, video, commanded, start).view(commands, -1, 2)  # (C, N, 2)
+    per_context = errors.mean(dim=0)
+    row = {name: mean_interval(per_context[:, k].tolist()).as_dict() for k, name in enumerate(("speed_mae", "curvature_mae"))}
+    row["per_command"] = errors.mean(dim=1).tolist()
+    return row
+
+
 def action_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: torch.Generator) -> dict[str, Any]:
-    """Ceiling / model / floor action errors over every context and command."""
+    """Ceiling / model / floor / reference action errors over every context and command, with targets."""
     c, rate, (height, width) = cfg.controllability, pipeline.rate, pipeline.image_size
     t0, frames = cfg.context.frames, max(2, math.ceil(cfg.seconds * rate))
     total = t0 + frames
@@ -101,63 +194,117 @@ def action_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: tor
     commanded = commanded_actions(contexts, t0, frames, rate, commands)
     n = c.contexts
     repeat = lambda x: x.repeat(len(commands), *[1] * (x.ndim - 1))  # noqa: E731  (command-major, like `commanded`)
-    model = rollout_frames(pipeline, repeat(contexts.frames[:, :t0]), frames, len(commanded), None, commanded, generator)
-    floor = repeat(rollout_frames(pipeline, contexts.frames[:, :t0], frames, n, None, None, generator))
-    ceiling = torch.stack([resimulate(cfg.context.seed, i % n, height, width, commanded[i].numpy(), t0, rate)
-                           for i in range(len(commanded))])
-    rows = {name: action_error(probe, video, commanded, t0 + 1) for name, video in
-            (("ceiling (real, re-simulated)", ceiling), ("model (action-conditioned)", model), ("floor (actions dropped)", floor))}
-    return {"commands": [list(cmd) for cmd in commands], "contexts": n, "scored_steps": frames - 1, "rows": rows}
+    videos = {
+        "ceiling": torch.cat([resimulate(cfg.context.seed, i % n, height, width, commanded[i].numpy(), t0, rate).frames
+                              for i in range(len(commanded))]),
+        "model": rollout_frames(pipeline, repeat(contexts.frames[:, :t0]), frames, len(commanded), None, commanded, generator),
+        "floor": repeat(rollout_frames(pipeline, contexts.frames[:, :t0], frames, n, None, None, generator)),
+        "reference": repeat(contexts.frames),
+    }
+    rows = {name: error_row(probe, video, commanded, t0 + 1, len(commands)) for name, video in videos.items()}
+    return {"commands": [list(cmd) for cmd in commands], "contexts": n, "scored_steps": frames - 1, "rows": rows,
+            "checks": action_checks(rows)}
+
+
+def action_checks(rows: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per metric: can the probe judge adherence (ceiling ≤ ½ floor and ≤ ½ reference), and does the model reach
+    the target (model ≤ floor − ½ (floor − ceiling))?"""
+    checks = {}
+    for metric in ("speed_mae", "curvature_mae"):
+        ceiling, model, floor, reference = (rows[k][metric]["mean"] for k in ("ceiling", "model", "floor", "reference"))
+        target = floor - 0.5 * (floor - ceiling)
+        checks[metric] = {"probe_reads_it": ceiling <= 0.5 * floor and ceiling <= 0.5 * reference,
+                          "ceiling_over_floor": ceiling / floor if floor else math.inf,
+                          "ceiling_over_reference": ceiling / reference if reference else math.inf,
+                          "target": target, "model_meets_target": model <= target}
+    return checks
+
+
+def share_row(probe, video: torch.Tensor, attr: str, index: int) -> dict[str, Any]:
+    """Rollouts reading value `index` of `attr` (majority of frames), Wilson interval, and the frame accuracy."""
+    shares = attribute_shares(probe, video, {attr: torch.full((len(video),), index)})[attr]
+    row = share_interval(int((shares > 0.5).sum()), len(shares)).as_dict()
+    row["frame_accuracy"] = float(shares.mean())
+    return row
 
 
 def text_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: torch.Generator) -> dict[str, Any]:
-    """Ceiling / model / floor accuracy per prompted attribute value."""
+    """Ceiling / model / floor share of rollouts reading each prompted attribute value."""
     c, rate, (height, width) = cfg.controllability, pipeline.rate, pipeline.image_size
     frames = max(1, math.ceil(cfg.seconds * rate))
     targets = [(attr, value) for attr, values in c.prompts.items() for value in values]
     repeats = c.text_repeats
-    captions = [[c.prompt_text[attr][value]] * frames for attr, value in targets for _ in range(repeats)]
-    text = pipeline.encode_text_batch(captions)
-    model = rollout_frames(pipeline, None, frames, len(captions), text, None, generator)
-    floor = rollout_frames(pipeline, None, frames, len(captions), None, None, generator)
-    real = probe_clips(world_clips(cfg.context.seed, c.real_clips, height, width, frames, rate, start=c.contexts),
-                       rate, frames)
-    rows: dict[str, dict[str, float]] = {"ceiling (real frames)": {}, "model (text-prompted)": {}, "floor (no text)": {}}
-    for j, (attr, value) in enumerate(targets):
-        index = ATTRIBUTES[attr].index(value)
-        batch = slice(j * repeats, (j + 1) * repeats)
-        target = {attr: torch.full((repeats,), index)}
+    floor = rollout_frames(pipeline, None, frames, repeats, None, None, generator)
+    real = probe_clips(world_clips(cfg.context.seed, c.real_clips, height, width, frames, rate, start=c.contexts,
+                                   balanced=True), rate, frames)
+    rows: dict[str, dict[str, Any]] = {"ceiling": {}, "model": {}, "floor": {}}
+    for attr, value in targets:
+        key, index = f"{attr}={value}", ATTRIBUTES[attr].index(value)
+        text = pipeline.encode_text_batch([[c.prompt_text[attr][value]] * frames] * repeats)
+        model = rollout_frames(pipeline, None, frames, repeats, text, None, generator)
         has_value = real.labels[attr][:, 0] == index
-        key = f"{attr}={value}"
-        rows["ceiling (real frames)"][key] = (attribute_accuracy(probe, real.frames[has_value], {attr: real.labels[attr][has_value, 0]})[attr]
-                                              if has_value.any() else float("nan"))
-        rows["model (text-prompted)"][key] = attribute_accuracy(probe, model[batch], target)[attr]
-        rows["floor (no text)"][key] = attribute_accuracy(probe, floor[batch], target)[attr]
+        rows["ceiling"][key] = share_row(probe, real.frames[has_value], attr, index) if has_value.any() else None
+        rows["model"][key] = share_row(probe, model, attr, index)
+        rows["floor"][key] = share_row(probe, floor, attr, index)
     chance = {f"{attr}={value}": 1.0 / len(ATTRIBUTES[attr]) for attr, value in targets}
-    return {"targets": [f"{a}={v}" for a, v in targets], "rollouts_per_prompt": repeats, "chance": chance, "rows": rows}
+    checks = {key: {"probe_reads_it": bool(row and row["frame_accuracy"] >= 0.9)} for key, row in rows["ceiling"].items()}
+    return {"targets": [f"{a}={v}" for a, v in targets], "rollouts_per_prompt": repeats, "chance": chance,
+            "rows": rows, "checks": checks}
+
+
+ACTION_ROWS = {"ceiling": "ceiling (real, re-simulated)", "model": "model (action-conditioned)",
+               "floor": "floor (actions dropped)", "reference": "reference (real continuation, commands ignored)"}
+TEXT_ROWS = {"ceiling": "ceiling (real clips)", "model": "model (text-prompted)", "floor": "floor (no text)"}
 
 
 def markdown(results: dict[str, Any]) -> str:
-    """The two tables of a controllability run."""
-    actions = results["actions"]
-    lines = ["| action adherence | speed MAE (m/s) | curvature MAE (1/m) |", "|---|---|---|"]
-    lines += [f"| {name} | {row['speed_mae']:.3f} | {row['curvature_mae']:.4f} |" for name, row in actions["rows"].items()]
-    text = results["text"]
-    lines += ["", "| text adherence | " + " | ".join(text["targets"]) + " |", "|---" * (len(text["targets"]) + 1) + "|"]
-    lines += [f"| {name} | " + " | ".join(f"{row[t]:.2f}" for t in text["targets"]) + " |" for name, row in text["rows"].items()]
-    lines += ["| chance | " + " | ".join(f"{text['chance'][t]:.2f}" for t in text["targets"]) + " |"]
+    """The two tables of a controllability run, with 95 % intervals and the probe checks."""
+    actions, text = results["actions"], results["text"]
+    lines = [f"Action adherence: mean |probed − commanded| over {actions['contexts']} contexts × "
+             f"{len(actions['commands'])} commands ({', '.join('/'.join(c) for c in actions['commands'])}), "
+             f"{actions['scored_steps']} scored steps each; ± 95 % interval over contexts.", "",
+             "| action adherence | speed MAE (m/s) | curvature MAE (1/m) |", "|---|---|---|"]
+    for key, name in ACTION_ROWS.items():
+        row = actions["rows"][key]
+        lines.append(f"| {name} | {fmt(row['speed_mae'], 3)} | {fmt(row['curvature_mae'], 4)} |")
+    checks = actions["checks"]
+    lines.append("| target: model ≤ floor − ½ (floor − ceiling) | " + " | ".join(
+        f"{checks[m]['target']:.{d}f} ({'met' if checks[m]['model_meets_target'] else 'missed'})"
+        for m, d in (("speed_mae", 3), ("curvature_mae", 4))) + " |")
+    lines.append("| probe check: ceiling ≤ ½ floor and ≤ ½ reference | " + " | ".join(
+        f"{'yes' if checks[m]['probe_reads_it'] else 'NO'} ({checks[m]['ceiling_over_floor']:.2f}, "
+        f"{checks[m]['ceiling_over_reference']:.2f})" for m in ("speed_mae", "curvature_mae")) + " |")
+    lines += ["", f"Text adherence: share of rollouts ({text['rollouts_per_prompt']} per prompt, generated from the "
+              "prompt alone) whose frames mostly read the prompted value; [95 % Wilson interval].", "",
+              "| text adherence | " + " | ".join(text["targets"]) + " |", "|---" * (len(text["targets"]) + 1) + "|"]
+    for key, name in TEXT_ROWS.items():
+        lines.append(f"| {name} | " + " | ".join(share_cell(text["rows"][key][t]) for t in text["targets"]) + " |")
+    lines.append("| chance | " + " | ".join(f"{text['chance'][t]:.2f}" for t in text["targets"]) + " |")
+    lines.append("| probe check: real-frame accuracy ≥ 0.9 | " + " | ".join(
+        f"{'yes' if text['checks'][t]['probe_reads_it'] else 'NO'} ({cell_accuracy(text['rows']['ceiling'][t])})"
+        for t in text["targets"]) + " |")
     return "\n".join(lines) + "\n"
+
+
+def fmt(estimate: dict[str, float], digits: int) -> str:
+    return f"{estimate['mean']:.{digits}f} ± {(estimate['high'] - estimate['low']) / 2:.{digits}f}"
+
+
+def share_cell(row: dict[str, float] | None) -> str:
+    return "n/a (no real clip)" if row is None else f"{row['mean']:.2f} [{row['low']:.2f}, {row['high']:.2f}]"
+
+
+def cell_accuracy(row: dict[str, float] | None) -> str:
+    return "no clip" if row is None else f"{row['frame_accuracy']:.2f}"
 
 
 def controllability(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Run the protocol of the module docstring; returns the results (also written to the run dir)."""
     pipeline = load_pipeline(cfg)
-    c, rate, (height, width) = cfg.controllability, pipeline.rate, pipeline.image_size
-    t = cfg.context.frames + max(2, math.ceil(cfg.seconds * rate))
-    train = probe_clips(world_clips(c.probe_seed, c.probe_clips, height, width, t, rate), rate, t)
-    dynamics, scene, fit = train_probes(train, c.probe_steps, seed=cfg.seed)
+    t = cfg.context.frames + max(2, math.ceil(cfg.seconds * pipeline.rate))
+    dynamics, scene, probe_info = probes_for(cfg, pipeline, t, Path(run_dir))
     generator = torch.Generator(device=pipeline.device).manual_seed(int(cfg.seed))
-    results = {"probe_fit": fit, "actions": action_table(cfg, pipeline, dynamics, generator),
+    results = {"probes": probe_info, "actions": action_table(cfg, pipeline, dynamics, generator),
                "text": text_table(cfg, pipeline, scene, generator)}
     atomic_write_text(run_dir / "controllability.json", json.dumps(results, indent=2))
     atomic_write_text(run_dir / "controllability.md", markdown(results))

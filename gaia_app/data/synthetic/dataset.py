@@ -16,9 +16,9 @@ import torch
 from gaia_app.data.clip import Clip
 from gaia_app.data.synthetic.generate import SyntheticSample, WorldConfig, clip_meta, sample_from_rng
 from gaia_app.data.synthetic.labels import frame_meta
-from gaia_app.data.synthetic.planning import make_plan
+from gaia_app.data.synthetic.planning import ScenePlan, make_plan
 from gaia_app.data.synthetic.scenario import Scenario, draw_setting
-from gaia_app.data.synthetic.simulate import simulate
+from gaia_app.data.synthetic.simulate import FrameState, simulate
 
 
 class SyntheticClipDataset(torch.utils.data.Dataset):
@@ -55,14 +55,22 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
     def __getitem__(self, index: int) -> Clip:
         return self.sample(index).clip
 
-    def describe(self, index: int) -> dict[str, Any]:
-        """Clip-level metadata plus mean 'speed' and 'curvature' of clip `index`, from the
-        simulation only (no rendering): cheap features for balanced sampling."""
+    def simulate(self, index: int) -> tuple[ScenePlan, list[FrameState]]:
+        """The plan and per-frame simulation states of clip `index`, without rendering anything."""
         rng = self._rng(int(index))
         config, scenario = self.config, self.scenario or Scenario()
         setting = draw_setting(rng, scenario, config.weather_mix, config.time_of_day_mix)
         plan = make_plan(rng, scenario, setting, config.clip_len, config.fps, config.agent_density)
-        states = simulate(plan, config.clip_len, config.fps)
+        return plan, simulate(plan, config.clip_len, config.fps)
+
+    def simulated_actions(self, index: int) -> np.ndarray:
+        """(clip_len, 2) float32 ego (speed m/s, curvature 1/m) of clip `index`, as `ds[index].actions`, unrendered."""
+        return np.array([[s.speed, s.curvature] for s in self.simulate(index)[1]], dtype=np.float32)
+
+    def describe(self, index: int) -> dict[str, Any]:
+        """Clip-level metadata plus mean 'speed' and 'curvature' of clip `index`, from the
+        simulation only (no rendering): cheap features for balanced sampling."""
+        plan, states = self.simulate(index)
         meta = clip_meta(plan, frame_meta(plan.world, states[0]), {"seed": self.seed, "index": int(index)})
         meta["speed"] = float(np.mean([s.speed for s in states]))
         meta["curvature"] = float(np.mean([s.curvature for s in states]))
