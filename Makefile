@@ -34,6 +34,10 @@ install-dev: $(VENV)/.installed-dev
 DEMO_CKPTS := tokenizer_ckpt=$(DEMO_DIR)/tokenizer/checkpoints/last.ckpt \
 	world_model_ckpt=$(DEMO_DIR)/world_model/checkpoints/last.ckpt \
 	decoder_ckpt=$(DEMO_DIR)/video_decoder/checkpoints/last.ckpt
+# a smoke-size controllability table (the default protocol, 32 contexts × 4 commands with probes trained on 256
+# clips, takes longer than the rest of the demo; docs/generate.md)
+DEMO_CONTROLLABILITY := controllability.probe_clips=48 controllability.probe_steps=400 controllability.contexts=8 \
+	controllability.text_repeats=4 controllability.real_clips=24
 demo: install
 	$(PY) train.py experiment=gaia1/demo/tokenizer hydra.run.dir=$(DEMO_DIR)/tokenizer ckpt_path=last
 	$(PY) generate.py mode=tokenize ckpt=$(DEMO_DIR)/tokenizer/checkpoints/last.ckpt data=synthetic \
@@ -46,7 +50,8 @@ demo: install
 		hydra.run.dir=$(DEMO_DIR)/rollout_action
 	$(PY) generate.py mode=text $(DEMO_CKPTS) decoder_ckpt=null 'prompt="It is night. It is raining."' \
 		hydra.run.dir=$(DEMO_DIR)/rollout_text
-	$(PY) generate.py mode=controllability $(DEMO_CKPTS) decoder_ckpt=null hydra.run.dir=$(DEMO_DIR)/controllability
+	$(PY) generate.py mode=controllability $(DEMO_CKPTS) decoder_ckpt=null hydra.run.dir=$(DEMO_DIR)/controllability \
+		$(DEMO_CONTROLLABILITY)
 	@echo "demo outputs: $(DEMO_DIR)/rollout_{action,text}/{grid,future_0,future_1}.mp4 (real clip | futures)"
 	@echo "controllability (probes on rollouts, with ceiling and floor): $(DEMO_DIR)/controllability/controllability.md"
 	@echo "Rerun: .venv/bin/rerun $(DEMO_DIR)/rollout_action/rollout.rrd $(DEMO_DIR)/rollout_text/rollout.rrd"

@@ -37,6 +37,7 @@ from omegaconf import DictConfig
 
 from gaia_app.data.clip import Clip
 from gaia_app.data.synthetic import SyntheticClipDataset
+from gaia_app.data.synthetic.commands import command_profile, draw_command
 from gaia_app.data.synthetic.generate import SyntheticSample
 from gaia_app.data.synthetic.scenario import TIMES_OF_DAY, WEATHERS, Scenario
 from gaia_app.eval.controllability import (
@@ -53,16 +54,13 @@ from gaia_app.eval.controllability import (
 from gaia_app.eval.intervals import mean_interval, share_interval
 from gaia_app.models.probes import ATTRIBUTES
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
-from gaia_app.pipelines.gaia1_inputs import MAX_SPEED, future_actions
+from gaia_app.pipelines.gaia1_inputs import future_actions
 from gaia_app.tasks.rollout import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 
 SOURCE_FPS = 25.0
 # every weather and time of day equally often: probes see enough snow and night, ceilings have clips of each value
 UNIFORM_MIX = {"weather_mix": dict.fromkeys(WEATHERS, 1.0), "time_of_day_mix": dict.fromkeys(TIMES_OF_DAY, 1.0)}
-# open-loop commands drawn for the probes' driven clips: acceleration (m/s²) and curvature (1/m) ranges that
-# contain every preset of gaia_app.pipelines.gaia1_inputs (brake −4, accelerate +2, left/right ±0.02)
-PROBE_ACCELERATION, PROBE_CURVATURE = (-4.5, 2.5), (-0.05, 0.05)
 
 
 def world(seed: int, count: int, height: int, width: int, frames: int, rate: float, scenario: Scenario | None = None,
@@ -122,12 +120,11 @@ def commanded_actions(contexts: ProbeClips, t0: int, frames: int, rate: float,
 
 def random_command(rng: np.random.Generator, source: np.ndarray, t0: int, frames: int, rate: float) -> np.ndarray:
     """(frames, 2) per-step actions: the source's own (25 Hz, sampled at each step) before t0, then a random constant
-    acceleration and curvature (straight a third of the time) from the speed at step t0 − 1."""
+    acceleration and curvature (gaia_app/data/synthetic/commands.py) from the speed at step t0 − 1."""
     own = source[np.minimum(np.round(np.arange(frames) * SOURCE_FPS / rate).astype(int), len(source) - 1)]
-    elapsed = np.arange(1, frames - t0 + 1) / rate
-    speed = np.clip(own[t0 - 1, 0] + rng.uniform(*PROBE_ACCELERATION) * elapsed, 0.0, MAX_SPEED)
-    curvature = 0.0 if rng.random() < 1 / 3 else rng.uniform(*PROBE_CURVATURE)
-    return np.concatenate([own[:t0], np.stack([speed, np.full_like(speed, curvature)], axis=1)]).astype(np.float64)
+    acceleration, curvature = draw_command(rng)
+    future = command_profile(float(own[t0 - 1, 0]), acceleration, curvature, frames - t0, 1.0 / rate)
+    return np.concatenate([own[:t0], future]).astype(np.float64)
 
 
 def probe_training_data(seed: int, count: int, height: int, width: int, frames: int, rate: float,

@@ -112,3 +112,23 @@ def test_speed_and_curvature_are_diverse() -> None:
     assert speed.min() < 3.0 and speed.max() > 20.0 and speed.std() > 5.0
     assert curvature.min() < -0.01 and curvature.max() > 0.01
     assert len({r["behaviour"] for r in rows}) == 6 and len({r["environment"] for r in rows}) == 4
+
+
+def test_open_loop_clips_switch_to_a_constant_command_in_the_same_scene() -> None:
+    """driven_share: the chosen clips keep their scene and their policy's first quarter, then hold one command."""
+    driven = SyntheticClipDataset(num_clips=8, seed=5, height=16, width=16, clip_len=24, driven_share=0.5)
+    policy = SyntheticClipDataset(num_clips=8, seed=5, height=16, width=16, clip_len=24)
+    flags = [bool(driven[i].meta.get("open_loop")) for i in range(8)]
+    assert 0 < sum(flags) < 8
+    for i, open_loop in enumerate(flags):
+        mine, theirs = driven[i], policy[i]
+        assert mine.meta["weather"] == theirs.meta["weather"] and mine.meta["lanes"] == theirs.meta["lanes"]
+        np.testing.assert_array_equal(mine.actions[:6], theirs.actions[:6])  # the switch is in the middle half
+        if open_loop:
+            curvature, speed = mine.actions[-6:, 1], mine.actions[-6:, 0]
+            assert np.ptp(curvature) == 0 and np.allclose(np.diff(speed), np.diff(speed)[0], atol=1e-4) or speed.min() == 0
+            assert not np.array_equal(mine.actions, theirs.actions)
+        else:
+            np.testing.assert_array_equal(mine.actions, theirs.actions)
+    with pytest.raises(ValueError, match="driven_share"):
+        SyntheticClipDataset(num_clips=1, driven_share=1.5)

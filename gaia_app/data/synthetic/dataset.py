@@ -8,12 +8,14 @@ workers and the main process return identical clips.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import torch
 
 from gaia_app.data.clip import Clip
+from gaia_app.data.synthetic.commands import open_loop_actions
 from gaia_app.data.synthetic.generate import SyntheticSample, WorldConfig, clip_meta, sample_from_rng
 from gaia_app.data.synthetic.labels import frame_meta
 from gaia_app.data.synthetic.planning import ScenePlan, make_plan
@@ -21,20 +23,34 @@ from gaia_app.data.synthetic.scenario import Scenario, draw_setting
 from gaia_app.data.synthetic.simulate import FrameState, simulate
 
 
+# stream of the per-clip generator that decides whether (and how) clip i is driven open-loop
+OPEN_LOOP_STREAM = 7
+
+
 class SyntheticClipDataset(torch.utils.data.Dataset):
-    """`num_clips` synthetic clips; `ds[i]` is a `Clip` (see generate_clip for the knobs)."""
+    """`num_clips` synthetic clips; `ds[i]` is a `Clip` (see generate_clip for the knobs).
+
+    driven_share: share of clips whose ego leaves its policy in the middle half of the clip for a random constant
+        acceleration and curvature (gaia_app/data/synthetic/commands.py): actions the frames do not give away,
+        which a world model needs to learn what a command does. Such clips have meta["open_loop"] = True.
+    """
 
     def __init__(self, num_clips: int = 64, seed: int = 0, height: int = 64, width: int = 112,
                  cameras: int | Sequence[str] = ("front",), clip_len: int = 8, fps: float = 25.0,
                  weather_mix: Mapping[str, float] | None = None, time_of_day_mix: Mapping[str, float] | None = None,
-                 agent_density: float = 1.0, scenario: Scenario | None = None):
+                 agent_density: float = 1.0, scenario: Scenario | None = None, driven_share: float = 0.0):
         if isinstance(num_clips, bool) or not isinstance(num_clips, (int, np.integer)) or num_clips < 1:
             raise ValueError(f"num_clips: expected a positive integer, got {num_clips!r}")
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed: expected a non-negative integer, got {seed!r}")
         if scenario is not None and not isinstance(scenario, Scenario):
             raise ValueError(f"scenario: expected a Scenario or None, got {type(scenario).__name__}")
+        if not 0.0 <= driven_share <= 1.0:
+            raise ValueError(f"driven_share: expected a share in [0, 1], got {driven_share!r}")
+        if driven_share > 0 and scenario is not None and scenario.ego_actions is not None:
+            raise ValueError("driven_share > 0 with scenario.ego_actions: the clip's actions are given twice")
         self.num_clips, self.seed, self.scenario = int(num_clips), int(seed), scenario
+        self.driven_share = float(driven_share)
         cameras = cameras if isinstance(cameras, (int, np.integer)) else list(cameras)  # Hydra passes ListConfig
         self.config = WorldConfig.make(height, width, cameras, clip_len, fps, weather_mix, time_of_day_mix, agent_density)
 
@@ -48,9 +64,21 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
 
     def sample(self, index: int) -> SyntheticSample:
         """Clip `index` with its simulation (for instance masks)."""
-        i = int(index) % self.num_clips if index >= 0 else self.num_clips + int(index)
-        return sample_from_rng(self._rng(int(index)), self.config, self.scenario, f"synthetic-s{self.seed}-{i:06d}",
-                               {"seed": self.seed, "index": i})
+        rng = self._rng(int(index))
+        i = int(index) % self.num_clips
+        scenario = self.open_loop_scenario(i)
+        meta = {"seed": self.seed, "index": i, **({"open_loop": True} if scenario is not self.scenario else {})}
+        return sample_from_rng(rng, self.config, scenario, f"synthetic-s{self.seed}-{i:06d}", meta)
+
+    def open_loop_scenario(self, index: int) -> Scenario | None:
+        """The dataset's scenario, with open-loop ego actions for the `driven_share` of clips that get them."""
+        if self.driven_share <= 0:
+            return self.scenario
+        choice = np.random.default_rng([self.seed, index, OPEN_LOOP_STREAM])
+        if choice.random() >= self.driven_share:
+            return self.scenario
+        actions = open_loop_actions(choice, self.simulated_actions(index), self.config.fps)
+        return replace(self.scenario or Scenario(), ego_actions=actions)
 
     def __getitem__(self, index: int) -> Clip:
         return self.sample(index).clip

@@ -1,0 +1,43 @@
+"""Random open-loop ego commands: clips in which the ego leaves its policy and obeys a command.
+
+The policy (policy.py) follows its lane and traffic, so its actions are predictable from the frames: a world model
+trained on policy clips alone can predict every future without reading the actions, and nothing teaches it
+what a command does. A clip that switches, at a random moment, to a random constant acceleration and curvature
+shows the effect of actions that the past does not give away. The same commands train the controllability probes
+(gaia_app/tasks/controllability.py), which must read such open-loop futures.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# acceleration (m/s²) and curvature (1/m) ranges that contain every preset of generate.py (brake −4, accelerate
+# +2, left/right ±0.02, strong ±0.05); straight a third of the time
+ACCELERATION_RANGE = (-4.5, 2.5)
+CURVATURE_RANGE = (-0.05, 0.05)
+STRAIGHT_SHARE = 1 / 3
+MAX_SPEED = 30.0  # m/s, the cap of commanded speeds
+
+
+def draw_command(rng: np.random.Generator) -> tuple[float, float]:
+    """One random (acceleration m/s², curvature 1/m)."""
+    acceleration = rng.uniform(*ACCELERATION_RANGE)
+    curvature = 0.0 if rng.random() < STRAIGHT_SHARE else rng.uniform(*CURVATURE_RANGE)
+    return float(acceleration), float(curvature)
+
+
+def command_profile(start_speed: float, acceleration: float, curvature: float, steps: int, dt: float) -> np.ndarray:
+    """(steps, 2) (speed, curvature) of a constant command from `start_speed`, one row per dt after the switch."""
+    speed = np.clip(start_speed + acceleration * dt * np.arange(1, steps + 1), 0.0, MAX_SPEED)
+    return np.stack([speed, np.full(steps, curvature)], axis=1)
+
+
+def open_loop_actions(rng: np.random.Generator, policy: np.ndarray, fps: float) -> np.ndarray:
+    """(t, 2) actions: the policy's (t, 2) until a random frame in the middle half of the clip, then a random command."""
+    t = len(policy)
+    if t < 4:
+        raise ValueError(f"open-loop commands need clips of at least 4 frames, got {t}")
+    switch = int(rng.integers(t // 4, max(t // 4 + 1, 3 * t // 4)))
+    acceleration, curvature = draw_command(rng)
+    tail = command_profile(float(policy[max(switch - 1, 0), 0]), acceleration, curvature, t - switch, 1.0 / fps)
+    return np.concatenate([policy[:switch], tail]).astype(np.float64)
