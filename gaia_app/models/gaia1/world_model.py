@@ -61,13 +61,13 @@ class WorldModelConditioner(nn.Module):
                  drop: Mapping[str, float] | None = None, action_norm: Mapping[str, Sequence[float]] | None = None):
         super().__init__()
         norm = dict(action_norm or DEFAULT_ACTION_NORM)
-        mean, std = (torch.tensor([float(v) for v in norm.get(key, ())]) for key in ("mean", "std"))
-        if mean.shape != (action_tokens,) or std.shape != (action_tokens,) or not bool((std > 0).all()):
+        mean, std = ([float(v) for v in norm.get(key, ())] for key in ("mean", "std"))  # floats: works on meta too
+        if len(mean) != action_tokens or len(std) != action_tokens or min(std, default=0.0) <= 0:
             raise ValueError(f"action_norm needs 'mean' and 'std' with {action_tokens} values each, std > 0; "
                              f"got {dict(norm)}")
         # persistent: the scales the projection was trained with travel with the weights
-        self.register_buffer("action_mean", mean)
-        self.register_buffer("action_std", std)
+        self.register_buffer("action_mean", torch.tensor(mean))
+        self.register_buffer("action_std", torch.tensor(std))
         self.text_tokens, self.action_tokens = text_tokens, action_tokens
         self.text_proj = nn.Linear(text_dim, dim)
         # l independent scalar → d linear layers, one per action channel (speed, curvature)
