@@ -13,11 +13,13 @@ from gaia_app.pipelines.gaia1_world_model import WorldModelRolloutPipeline
 V, T, M, N, E = 16, 3, 2, 5, 8
 
 
-@pytest.fixture(scope="module", params=[False, True], ids=["plain", "previous_frame_shortcut"])
+@pytest.fixture(scope="module", params=[(False, False), (True, False), (True, True)],
+                ids=["plain", "previous_frame_shortcut", "both_shortcuts"])
 def net(request) -> WorldModel:
     torch.manual_seed(0)
+    frame_shortcut, action_shortcut = request.param
     return WorldModel(V, dim=32, depth=2, heads=4, kv_heads=2, frames=T, text_tokens=M, image_tokens=N, text_dim=E,
-                      previous_frame_shortcut=request.param).eval()
+                      previous_frame_shortcut=frame_shortcut, action_shortcut=action_shortcut).eval()
 
 
 def test_eq3_guidance_arithmetic() -> None:

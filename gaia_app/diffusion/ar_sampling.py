@@ -124,7 +124,8 @@ class AutoregressiveSampler:
         copies = streams.text.shape[0] // tokens.shape[0]  # one copy per stream
         both = tokens[:, t : t + 1].repeat(copies, 1, 1)
         previous = tokens[:, t - 1].repeat(copies, 1) if t > start else None
-        return net.embed(both, streams.steps(t, t + 1), t - start, previous)
+        previous_actions = streams.actions[:, t - 1] if t > start else None
+        return net.embed(both, streams.steps(t, t + 1), t - start, previous, previous_actions)
 
     @staticmethod
     def prefill(net: WorldModel, tokens: torch.Tensor, streams: Conditions, start: int, t: int) -> torch.Tensor:

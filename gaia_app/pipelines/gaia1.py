@@ -127,6 +127,19 @@ class Gaia1Pipeline:
             raise ValueError("image_size=(H, W) is needed when no decoder checkpoint gives it")
         return cls(tok.eval(), wm.world_model.eval(), image_size, wm.text_encoder, decoder=video, **kwargs)
 
+    @classmethod
+    def from_weights(cls, folder: str | Path, device: str = "cpu", **kwargs) -> Gaia1Pipeline:
+        """Tokenizer and world model from a shipped weights folder (gaia_app/pipelines/shipped.py), e.g.
+        gaia_app/weights/gaia1; frames are decoded one by one by the tokenizer. kwargs: sampler, guidance."""
+        from gaia_app.pipelines.shipped import load_nets
+
+        tokenizer, tokenizer_info = load_nets(folder, "tokenizer", device)
+        world_model, world_info = load_nets(folder, "world_model", device)
+        if "image_size" not in tokenizer_info or "rate" not in world_info:
+            raise ValueError(f"{folder}: tokenizer.yaml needs info.image_size and world_model.yaml info.rate")
+        return cls(tokenizer["net"], world_model["net"], tuple(tokenizer_info["image_size"]),
+                   world_model.get("text_encoder"), upsample=0, rate=float(world_info["rate"]), **kwargs)
+
     def check_layout(self) -> None:
         """Tokenizer, world model and decoder must agree on the token grid and the vocabulary."""
         h, w = self.token_grid

@@ -55,6 +55,7 @@ from gaia_app.eval.intervals import mean_interval, share_interval
 from gaia_app.models.probes import ATTRIBUTES
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.gaia1_inputs import future_actions
+from gaia_app.pipelines.shipped import shipped_folder
 from gaia_app.tasks.rollout import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 
@@ -151,6 +152,8 @@ def probes_for(cfg: DictConfig, pipeline: Gaia1Pipeline, frames: int, run_dir: P
     c, size, rate = cfg.controllability, tuple(pipeline.image_size), float(pipeline.rate)
     if c.probes:
         return load_probes(c.probes, size, rate)
+    if cfg.get("weights"):  # shipped weights carry the probes they were measured with
+        return load_probes(shipped_folder(cfg.weights) / "probes", size, rate)
     data = probe_training_data(c.probe_seed, c.probe_clips, *size, frames, rate, c.driven_share)
     dynamics, scene, fit = train_probes(data, c.probe_steps, seed=cfg.seed)
     info = {"image_size": list(size), "rate": rate, "frames": frames, "probe_seed": int(c.probe_seed),

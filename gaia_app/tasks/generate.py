@@ -38,6 +38,7 @@ from gaia_app.pipelines.gaia1_tokenizer import (ReconstructionOutput, TokenCache
 from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
 from gaia_app.tasks.controllability import controllability
 from gaia_app.tasks.evaluate import evaluate
+from gaia_app.tasks.export import export
 from gaia_app.tasks.gaia2_evaluate import gaia2_evaluate
 from gaia_app.tasks.gaia2_generate import GAIA2_MODES, gaia2_generate
 from gaia_app.tasks.rollout import ROLLOUT_MODES, rollout
@@ -155,7 +156,7 @@ MODES = {"reconstruct": (ImageTokenizerModule, reconstruct), "tokenize": (ImageT
 def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """The single-checkpoint modes of `MODES` on `cfg.ckpt`."""
     if cfg.mode not in MODES:
-        raise ValueError(f"mode={cfg.mode}: expected one of {sorted(MODES) + list(ROLLOUT_MODES) + ['controllability', 'evaluate']}")
+        raise ValueError(f"mode={cfg.mode}: expected one of {sorted(MODES) + list(ROLLOUT_MODES) + ['controllability', 'evaluate', 'export']}")
     if not cfg.ckpt:
         raise ValueError(f"mode={cfg.mode} needs ckpt=<checkpoint of a trained tokenizer>")
     module_type, run = MODES[cfg.mode]
@@ -191,6 +192,8 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
         results = controllability(cfg, run_dir)
     elif cfg.mode == "evaluate":
         results = evaluate(cfg, run_dir)
+    elif cfg.mode == "export":
+        results = export(cfg, run_dir)
     else:
         results = run_component(cfg, run_dir)
     atomic_write_text(run_dir / "results.json", json.dumps(results, indent=2))

@@ -28,6 +28,7 @@ from gaia_app.data.transforms import to_uint8
 from gaia_app.data.video_io import write_video
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline, Gaia1Rollout
 from gaia_app.pipelines.gaia1_inputs import MODES, ContextClip, build_conditioning, context_for, describe_actions
+from gaia_app.pipelines.shipped import shipped_folder
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.viz.blueprints import rollout_blueprint
 from gaia_app.viz.media import log_token_map, to_hwc_uint8, video_grid
@@ -49,13 +50,20 @@ def staging(run_dir: Path) -> Iterator[Path]:
 
 
 def load_pipeline(cfg: DictConfig) -> Gaia1Pipeline:
-    """The three checkpoints of `cfg` (decoder optional) with the sampler and guidance of `cfg`."""
-    for key in ("tokenizer_ckpt", "world_model_ckpt"):
-        if not cfg.get(key):
-            raise ValueError(f"mode={cfg.mode} needs {key}=<checkpoint> (and optionally decoder_ckpt=)")
+    """The three checkpoints of `cfg` (decoder optional), or its shipped `weights`, with the sampler and guidance
+    of `cfg`."""
     guidance = instantiate(cfg.guidance) if cfg.guidance.scale > 0 else None
     if cfg.negative_prompt and guidance is None:
         raise ValueError("negative_prompt replaces the unconditioned stream of guidance: set guidance.scale > 0")
+    if cfg.get("weights"):
+        given = [key for key in ("tokenizer_ckpt", "world_model_ckpt", "decoder_ckpt") if cfg.get(key)]
+        if given:
+            raise ValueError(f"weights={cfg.weights} replaces the checkpoints; drop {', '.join(given)}")
+        return Gaia1Pipeline.from_weights(shipped_folder(cfg.weights), device=cfg.device,
+                                          sampler=instantiate(cfg.token_sampler), guidance=guidance)
+    for key in ("tokenizer_ckpt", "world_model_ckpt"):
+        if not cfg.get(key):
+            raise ValueError(f"mode={cfg.mode} needs {key}=<checkpoint> (and optionally decoder_ckpt=), or weights=")
     image_size = (cfg.data.height, cfg.data.width)
     return Gaia1Pipeline.from_checkpoints(cfg.tokenizer_ckpt, cfg.world_model_ckpt, cfg.decoder_ckpt,
                                           image_size=image_size, device=cfg.device, decoder_steps=cfg.decoder_steps,

@@ -43,9 +43,10 @@ def test_perturbing_a_later_image_token_leaves_earlier_logits_unchanged(shortcut
     assert not torch.allclose(after[:, 1, 4:], before[:, 1, 4:])
 
 
-def test_action_of_step_t_conditions_only_later_steps() -> None:
+@pytest.mark.parametrize("action_shortcut", [False, True])
+def test_action_of_step_t_conditions_only_later_steps(action_shortcut: bool) -> None:
     """Eq. 1: z_t sees a_{<t}, not a_t; text c_t is seen by z_t."""
-    net = tiny()
+    net = tiny(action_shortcut=action_shortcut)
     tokens, text, actions = inputs()
     base = net(tokens, conditions(net, text, actions))
     moved = actions.clone()
@@ -84,6 +85,22 @@ def test_previous_frame_shortcut_adds_the_earlier_token_where_its_cell_is_predic
         expected[:, :, M - 1 : M + N - 1] = net.token_embedding(earlier)  # slot m - 1 + i predicts z_{t,i}
         if prev is None:
             expected[:, 0] = 0  # the step opening the window has no earlier frame
+        torch.testing.assert_close(diff, expected)
+
+
+def test_action_shortcut_adds_the_previous_steps_actions_where_each_image_token_is_predicted() -> None:
+    plain, net = tiny(), tiny(action_shortcut=True)  # no extra parameters: identical weights
+    tokens, text, actions = inputs()
+    cond = conditions(plain, text, actions)
+    previous = torch.randn(2, L, 32)
+    for prev in (None, previous):
+        diff = rearrange(net.embed(tokens, cond, previous_actions=prev) - plain.embed(tokens, cond),
+                         "b (t s) d -> b t s d", t=T)
+        earlier = torch.cat([previous[:, None], cond.actions[:, :-1]], dim=1).sum(dim=2)  # (b, t, d): a_{t-1}
+        expected = torch.zeros_like(diff)
+        expected[:, :, M - 1 : M + N - 1] = earlier[:, :, None]  # every slot that predicts an image token of step t
+        if prev is None:
+            expected[:, 0] = 0  # the step opening the window has no earlier action
         torch.testing.assert_close(diff, expected)
 
 

@@ -139,6 +139,11 @@ class WorldModel(nn.Module):
             Learning to find that cell by attention alone takes far more data than a CPU run sees: on
             one minute of commaVQ tokens the model without it memorises the training frames and never
             beats copying the previous frame (docs/world_model.md has the ablation).
+        action_shortcut: add to every position that predicts an image token of step t the sum of the action
+            embeddings of step t - 1, the command that moved the ego from frame t - 1 to frame t (not in the
+            paper; off in the paper preset). In GAIA-1 each action is one token that every image token has to
+            find by attention; at CPU scale the model never learns to, and rollouts ignore their commands
+            (docs/world_model.md measures both).
     """
 
     block_types = (TransformerBlock,)
@@ -148,7 +153,7 @@ class WorldModel(nn.Module):
                  text_dim: int = 384, mlp_ratio: float = 4.0, dropout: float = 0.0,
                  cond_drop: Mapping[str, float] | None = None, checkpointing: bool = False,
                  tie_embeddings: bool = False, previous_frame_shortcut: bool = False,
-                 action_norm: Mapping[str, Sequence[float]] | None = None):
+                 action_norm: Mapping[str, Sequence[float]] | None = None, action_shortcut: bool = False):
         super().__init__()
         if text_tokens < 1:
             raise ValueError("text_tokens must be ≥ 1: the last text token of step t predicts z_{t,1}")
@@ -156,6 +161,7 @@ class WorldModel(nn.Module):
         self.m, self.n, self.l = text_tokens, image_tokens, action_tokens
         self.step_len = text_tokens + image_tokens + action_tokens
         self.previous_frame_shortcut = previous_frame_shortcut
+        self.action_shortcut = action_shortcut
         self.conditioner = WorldModelConditioner(dim, text_dim, text_tokens, action_tokens, cond_drop, action_norm)
         self.token_embedding = nn.Embedding(vocab_size, dim)
         self.temporal = nn.Parameter(torch.zeros(frames, dim))  # shared by all tokens of a step
@@ -173,12 +179,13 @@ class WorldModel(nn.Module):
             nn.init.normal_(p, std=0.02)
 
     def embed(self, tokens: torch.Tensor, cond: Conditions, start: int = 0,
-              previous: torch.Tensor | None = None) -> torch.Tensor:
+              previous: torch.Tensor | None = None, previous_actions: torch.Tensor | None = None) -> torch.Tensor:
         """Interleaved, position-embedded inputs of whole steps (GAIA-1 §2.1).
 
         tokens: (b, t, n) int64; cond: t steps; start: window index of the first step → (b, t·s, d).
         previous: (b, n) tokens of the step before tokens[:, 0] within the window (previous-frame
             shortcut only); None when tokens[:, 0] opens the window.
+        previous_actions: (b, l, d) action tokens (cond.actions) of that step (action shortcut only).
         """
         t = tokens.shape[1]
         if start + t > self.frames:
@@ -187,7 +194,17 @@ class WorldModel(nn.Module):
         x = x + self.temporal[start : start + t, None] + self.spatial
         if self.previous_frame_shortcut:
             x = x + self.shortcut(tokens, previous)
+        if self.action_shortcut:
+            x = x + self.shortcut_actions(cond.actions, previous_actions)
         return rearrange(x, "b t s d -> b (t s) d")
+
+    def shortcut_actions(self, actions: torch.Tensor, previous: torch.Tensor | None) -> torch.Tensor:
+        """(b, t, s, d): the summed action tokens of step t - 1 (actions: (b, t, l, d)) at the n positions
+        predicting z_{t,·}; zeros for the step opening the window unless `previous` (b, l, d) gives its actions."""
+        earlier = actions[:, :-1].sum(dim=2)  # (b, t - 1, d)
+        first = actions.new_zeros(actions.shape[0], 1, actions.shape[-1]) if previous is None else previous.sum(1)[:, None]
+        earlier = repeat(torch.cat([first, earlier], dim=1), "b t d -> b t n d", n=self.n)
+        return nn.functional.pad(earlier, (0, 0, self.m - 1, self.l + 1))
 
     def shortcut(self, tokens: torch.Tensor, previous: torch.Tensor | None) -> torch.Tensor:
         """(b, t, s, d): embedding of z_{t-1,i} at the position predicting z_{t,i}, i.e. slot m - 1 + i.

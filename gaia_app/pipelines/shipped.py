@@ -1,0 +1,163 @@
+"""Shipped reference weights: inference nets rebuilt from `.safetensors` + `.yaml` alone (DESIGN.md layout).
+
+`gaia_app/weights/<family>/<component>.safetensors` holds the tensors of the nets inference needs (no optimiser,
+no discriminator); `<component>.yaml` holds how to build them:
+
+    format: 1
+    component: world_model
+    dtype: float16                 # storage type; nets are rebuilt in float32
+    nets: {net: {_target_: gaia_app.models..., _partial_: true, ...}, text_encoder: {...}}
+    info: {image_size: [64, 112], rate: 6.25, ...}
+
+Tensors are named `<net>.<parameter>`. Nothing is unpickled, and a YAML may only build classes of gaia_app, so a
+weights folder from elsewhere cannot run code on load. `export_component` writes both files from a training
+checkpoint of this project; `load_nets` reads them back.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+from torch import nn
+
+from gaia_app.utils.run_dir import atomic_write_bytes, atomic_write_text
+
+WEIGHTS_ROOT = Path(__file__).resolve().parents[1] / "weights"
+FORMAT = 1
+STORAGE_TYPES = {"float16": torch.float16, "float32": torch.float32}
+TARGET_PREFIX = "gaia_app."
+
+
+def shipped_folder(name: str | Path) -> Path:
+    """A weights folder: an existing path, else `gaia_app/weights/<name>` (e.g. "gaia1")."""
+    path = Path(name)
+    if path.is_dir():
+        return path
+    if (WEIGHTS_ROOT / str(name)).is_dir():
+        return WEIGHTS_ROOT / str(name)
+    shipped = sorted(p.name for p in WEIGHTS_ROOT.iterdir() if p.is_dir()) if WEIGHTS_ROOT.is_dir() else []
+    raise FileNotFoundError(f"weights={name}: no such folder, and gaia_app/weights has {shipped or 'no weights'}; "
+                            "restore it with `git checkout -- gaia_app/weights` or rebuild it with `make reproduce`")
+
+
+def weight_files(folder: str | Path, component: str) -> tuple[Path, Path]:
+    """(`<component>.safetensors`, `<component>.yaml`) in `folder`."""
+    folder = Path(folder)
+    return folder / f"{component}.safetensors", folder / f"{component}.yaml"
+
+
+def restore_hint(path: Path) -> str:
+    inside = WEIGHTS_ROOT in path.resolve().parents
+    return ("restore it with `git checkout -- gaia_app/weights` (or reinstall gaia_app), or rebuild the weights "
+            "with `make reproduce`") if inside else "export it again with `python generate.py mode=export`"
+
+
+def export_component(checkpoint: Mapping[str, Any], folder: str | Path, component: str, nets: Sequence[str],
+                     info: Mapping[str, Any], dtype: str = "float16") -> dict[str, Any]:
+    """Write `<component>.safetensors` + `.yaml` from a training checkpoint dict (`state_dict`, `hyper_parameters`).
+
+    nets: keys of the module config (`model_cfg.<key>`) whose nets inference needs; their tensors are the state
+    dict entries under `<key>.`. Returns {"parameters": count, "bytes": size of the safetensors file}.
+    """
+    from safetensors.torch import save as save_tensors
+
+    if dtype not in STORAGE_TYPES:
+        raise ValueError(f"dtype: expected one of {sorted(STORAGE_TYPES)}, got {dtype!r}")
+    model_cfg = checkpoint.get("hyper_parameters", {}).get("model_cfg")
+    if model_cfg is None:
+        raise KeyError("checkpoint has no hyper_parameters.model_cfg; was it written by gaia_app's train.py?")
+    model_cfg = OmegaConf.create(model_cfg)
+    state: dict[str, torch.Tensor] = {}
+    configs: dict[str, Any] = {}
+    for key in nets:
+        if model_cfg.get(key) is None:
+            raise KeyError(f"checkpoint's model_cfg has no '{key}' net to export")
+        configs[key] = OmegaConf.to_container(model_cfg[key], resolve=True)
+        part = {name: value for name, value in checkpoint["state_dict"].items() if name.startswith(f"{key}.")}
+        if not part:
+            raise KeyError(f"checkpoint's state_dict has no tensors under '{key}.'")
+        state.update({name: stored(value, STORAGE_TYPES[dtype]) for name, value in part.items()})
+    data = save_tensors(state)
+    weights, config = weight_files(folder, component)
+    atomic_write_bytes(weights, data)
+    atomic_write_text(config, yaml.safe_dump({"format": FORMAT, "component": component, "dtype": dtype,
+                                              "nets": configs, "info": dict(info)}, sort_keys=False))
+    return {"parameters": sum(v.numel() for v in state.values()), "bytes": len(data)}
+
+
+def stored(value: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """Floating tensors in the storage type, others (integer buffers) as they are; contiguous, detached."""
+    value = value.detach().cpu()
+    return (value.to(dtype) if value.is_floating_point() else value).contiguous()
+
+
+def read_config(path: Path) -> dict[str, Any]:
+    """The component YAML, checked: format, nets that build gaia_app classes only."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: {restore_hint(path)}")
+    try:
+        config = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as error:
+        raise ValueError(f"{path}: not readable YAML ({error}); {restore_hint(path)}") from error
+    if not isinstance(config, dict) or config.get("format") != FORMAT or not isinstance(config.get("nets"), dict):
+        raise ValueError(f"{path}: expected a weights config of format {FORMAT} with a 'nets' mapping; "
+                         f"{restore_hint(path)}")
+    for name, net in config["nets"].items():
+        check_targets(net, f"{path}: nets.{name}")
+    return config
+
+
+def check_targets(node: Any, where: str) -> None:
+    """Every `_target_` in the config tree must name something inside gaia_app."""
+    if isinstance(node, dict):
+        target = node.get("_target_")
+        if target is not None and not str(target).startswith(TARGET_PREFIX):
+            raise ValueError(f"{where}: _target_ '{target}' is outside gaia_app; shipped weights build only "
+                             "gaia_app nets")
+        for key, value in node.items():
+            check_targets(value, f"{where}.{key}")
+    elif isinstance(node, list):
+        for i, value in enumerate(node):
+            check_targets(value, f"{where}[{i}]")
+
+
+def read_tensors(path: Path) -> dict[str, torch.Tensor]:
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: {restore_hint(path)}")
+    try:
+        return load_file(str(path))
+    except (SafetensorError, OSError) as error:
+        raise ValueError(f"{path}: not a readable safetensors file ({error}); {restore_hint(path)}") from error
+
+
+def build(config: Any) -> nn.Module:
+    """A net from its Hydra config (a `_partial_` factory, as the training configs write them, or the class)."""
+    made = instantiate(config)
+    return made() if callable(made) and not isinstance(made, nn.Module) else made
+
+
+def load_nets(folder: str | Path, component: str, device: str | torch.device = "cpu") -> tuple[dict[str, nn.Module], dict]:
+    """({net key: float32 module in eval mode}, info) of a component written by `export_component`."""
+    weights, config_path = weight_files(folder, component)
+    config = read_config(config_path)
+    state = read_tensors(weights)
+    nets: dict[str, nn.Module] = {}
+    for key, net_config in config["nets"].items():
+        net = build(net_config)
+        part = {name[len(key) + 1:]: value for name, value in state.items() if name.startswith(f"{key}.")}
+        try:
+            net.load_state_dict(part, strict=True)
+        except RuntimeError as error:
+            raise ValueError(f"{weights}: the tensors of '{key}' do not fit the net of {config_path.name} "
+                             f"({error}); {restore_hint(weights)}") from error
+        nets[key] = net.float().to(device).eval()
+    return nets, dict(config.get("info") or {})

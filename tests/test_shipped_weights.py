@@ -1,0 +1,101 @@
+"""Shipped weights (gaia_app/pipelines/shipped.py): export from checkpoints, rebuild from .safetensors + .yaml alone,
+generate with `weights=`, and clear errors for missing, corrupt or foreign files."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from gaia_app.eval.controllability import save_probes
+from gaia_app.models.probes import InverseDynamicsProbe, SceneAttributeProbe
+from gaia_app.pipelines.gaia1 import Gaia1Pipeline
+from gaia_app.pipelines.shipped import WEIGHTS_ROOT, load_nets, shipped_folder
+from gaia_app.tasks.generate import generate
+from tests.conftest import compose_config
+from tests.test_generate_rollouts import SIZE, checkpoints, run  # noqa: F401  (checkpoints is a fixture)
+
+
+@pytest.fixture(scope="module")
+def shipped(checkpoints, tmp_path_factory) -> Path:  # noqa: F811
+    """A weights folder exported from the tiny checkpoints, with (untrained) probes for 32×48 at 6.25 Hz."""
+    root = tmp_path_factory.mktemp("shipped")
+    save_probes(root / "probes", InverseDynamicsProbe(), SceneAttributeProbe(), {"image_size": [32, 48], "rate": 6.25})
+    ckpts = {k: v for k, v in checkpoints.items() if k != "decoder_ckpt"}
+    results = run(ckpts, root / "export", "mode=export", f"out_dir={root / 'weights'}",
+                  f"controllability.probes={root / 'probes'}", decoder=False)
+    assert results["world_model"]["bytes"] > 0 and results["probes"] == str(root / "weights" / "probes")
+    return root / "weights"
+
+
+def test_weights_rebuild_the_nets_of_the_checkpoints(checkpoints, shipped: Path) -> None:  # noqa: F811
+    trained = Gaia1Pipeline.from_checkpoints(checkpoints["tokenizer_ckpt"], checkpoints["world_model_ckpt"],
+                                             image_size=(32, 48))
+    rebuilt = Gaia1Pipeline.from_weights(shipped)
+    assert rebuilt.image_size == (32, 48) and rebuilt.rate == 6.25 and rebuilt.decoder is None
+    for a, b in ((trained.world_model, rebuilt.world_model), (trained.tokenizer, rebuilt.tokenizer)):
+        for (name, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items(), strict=True):
+            assert y.dtype == x.dtype, name  # rebuilt in float32 from float16 storage
+            torch.testing.assert_close(y, x.to(torch.float16).to(x.dtype), msg=name)
+    frames = torch.rand(4, 3, 32, 48, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    with torch.no_grad():
+        same = (rebuilt.tokenizer.encode(frames) == trained.tokenizer.encode(frames)).float().mean()
+        decoded = rebuilt.tokenizer.decode(trained.tokenizer.encode(frames))
+        torch.testing.assert_close(decoded, trained.tokenizer.decode(trained.tokenizer.encode(frames)), atol=2e-2, rtol=0)
+    assert same > 0.95  # float16 storage may flip a near tie between two codes, rarely
+    captions = [["It is night."] * 2]
+    torch.testing.assert_close(rebuilt.text_encoder(captions), trained.text_encoder(captions), atol=1e-3, rtol=1e-3)
+
+
+def test_generation_and_controllability_run_from_weights_alone(shipped: Path, tmp_path: Path) -> None:
+    cfg = compose_config("generate", ["mode=action", f"weights={shipped}", "speed=brake", "curvature=left",
+                                      "num_futures=1", "seconds=0.5", "extras.print_config=false", *SIZE], tmp_path / "a")
+    results = generate(cfg)["results"]
+    assert (tmp_path / "a" / "grid.mp4").is_file() and results["fps"] == 6.25
+    args = ["mode=controllability", f"weights={shipped}", "seconds=0.5", "controllability.contexts=2",
+            "controllability.commands=[[brake,left]]", "controllability.prompts.time_of_day=[night]",
+            "~controllability.prompts.weather", "controllability.text_repeats=1", "controllability.real_clips=3",
+            "extras.print_config=false", *SIZE]
+    results = generate(compose_config("generate", args, tmp_path / "c"))["results"]
+    assert results["probes"]["image_size"] == [32, 48]  # the shipped probes, not retrained ones
+    assert not (tmp_path / "c" / "probes").exists()
+
+
+def corrupt(folder: Path, name: str) -> None:
+    (folder / name).write_bytes(b"not a safetensors file")
+
+
+def foreign_target(folder: Path, name: str) -> None:
+    config = yaml.safe_load((folder / name).read_text())
+    config["nets"]["net"]["_target_"] = "os.system"
+    (folder / name).write_text(yaml.safe_dump(config))
+
+
+@pytest.mark.parametrize(("damage", "error", "match"), [
+    (lambda f: (f / "world_model.safetensors").unlink(), FileNotFoundError,
+     r"world_model.safetensors is missing: export it again"),
+    (lambda f: corrupt(f, "tokenizer.safetensors"), ValueError, r"tokenizer.safetensors: not a readable safetensors"),
+    (lambda f: foreign_target(f, "tokenizer.yaml"), ValueError, r"nets.net: _target_ 'os.system' is outside gaia_app"),
+    (lambda f: (f / "tokenizer.yaml").write_text("format: 7\n"), ValueError, r"tokenizer.yaml: expected a weights config"),
+])
+def test_damaged_weights_are_named_with_how_to_restore_them(shipped: Path, tmp_path: Path, damage, error, match) -> None:
+    folder = tmp_path / "weights"
+    shutil.copytree(shipped, folder)
+    damage(folder)
+    with pytest.raises(error, match=match):
+        Gaia1Pipeline.from_weights(folder)
+
+
+def test_inside_the_package_the_hint_says_how_to_restore(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match=r"git checkout -- gaia_app/weights.*make reproduce"):
+        load_nets(WEIGHTS_ROOT / "no_such_family", "tokenizer")
+    with pytest.raises(FileNotFoundError, match=r"weights=nonexistent: no such folder"):
+        shipped_folder("nonexistent")
+
+
+def test_weights_and_checkpoints_together_are_refused(checkpoints, shipped: Path, tmp_path: Path) -> None:  # noqa: F811
+    with pytest.raises(ValueError, match="replaces the checkpoints; drop tokenizer_ckpt"):
+        run({"tokenizer_ckpt": checkpoints["tokenizer_ckpt"]}, tmp_path, "mode=video", f"weights={shipped}", decoder=False)
