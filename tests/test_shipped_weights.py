@@ -3,6 +3,8 @@ generate with `weights=`, and clear errors for missing, corrupt or foreign files
 
 from __future__ import annotations
 
+import json
+import math
 import shutil
 from pathlib import Path
 
@@ -99,3 +101,26 @@ def test_inside_the_package_the_hint_says_how_to_restore(tmp_path: Path) -> None
 def test_weights_and_checkpoints_together_are_refused(checkpoints, shipped: Path, tmp_path: Path) -> None:  # noqa: F811
     with pytest.raises(ValueError, match="replaces the checkpoints; drop tokenizer_ckpt"):
         run({"tokenizer_ckpt": checkpoints["tokenizer_ckpt"]}, tmp_path, "mode=video", f"weights={shipped}", decoder=False)
+
+
+def test_cross_entropy_report_scores_every_mode_against_the_baselines(checkpoints, tmp_path: Path) -> None:  # noqa: F811
+    from gaia_app.tasks.world_model_report import main
+
+    tokens = Path(checkpoints["world_model_ckpt"]).parents[2] / "tokens"
+    main(["--ckpt", str(checkpoints["world_model_ckpt"]), "--tokens", str(tokens), "--out", str(tmp_path)])
+    results = json.loads((tmp_path / "cross_entropy.json").read_text())
+    assert set(results["model"]) == {"unconditional", "actions", "text"} and results["windows"] > 0
+    for estimate in (*results["model"].values(), results["action_gain"]):
+        assert estimate["low"] <= estimate["mean"] <= estimate["high"]
+    assert 0 < results["copy_previous"] and 0 < results["unigram"] <= math.log(512) + 1e-6
+    assert "| copy previous frame" in (tmp_path / "cross_entropy.md").read_text()
+
+
+def test_reproduce_lists_every_step_of_the_recipe(capsys) -> None:
+    from gaia_app.tasks.reproduce import main
+
+    main(["--dry-run", "--out", "outputs/reference"])
+    commands = capsys.readouterr().out.strip().splitlines()
+    assert [c.split()[1] for c in commands] == ["train.py", "generate.py", "train.py", "-m", "generate.py", "generate.py"]
+    assert "experiment=gaia1/reference/tokenizer" in commands[0] and "experiment=gaia1/reference/world_model" in commands[2]
+    assert "mode=export" in commands[-1] and "out_dir=gaia_app/weights/gaia1" in commands[-1]

@@ -1,0 +1,124 @@
+"""`make reproduce`: the GAIA-1 reference recipe from scratch, ending in the shipped weights (docs/reference.md).
+
+    python -m gaia_app.tasks.reproduce [--out outputs/reference] [--weights gaia_app/weights/gaia1] [--dry-run]
+
+Steps, each a train.py / generate.py command that resumes or skips finished work when run again:
+  tokenizer        train.py experiment=gaia1/reference/tokenizer
+  tokenize         generate.py mode=tokenize: 1024 synthetic clips of 3.2 s, half of them leaving their policy for
+                   a random open-loop command, tokenized at 6.25 Hz (+ the held-out val world)
+  world_model      train.py experiment=gaia1/reference/world_model
+  cross_entropy    validation cross-entropy per conditioning mode vs the copy-previous-frame and unigram baselines
+  controllability  generate.py mode=controllability: probes trained at the recipe's size, 32 held-out contexts
+  export           generate.py mode=export into the weights folder (float16 safetensors + YAML + probes)
+Then MANIFEST.md beside the weights folder (gaia_app/weights/MANIFEST.md) records, per step, the exact command, its wall time, the commit and the
+machine, with the cross-entropy and controllability tables.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from gaia_app.utils.run_dir import atomic_write_text
+
+ROOT = Path(__file__).resolve().parents[2]
+# the recipe's protocol: 4 context frames and 8 generated ones (1.25 s) fill the world model's 12-step window
+PROTOCOL = ["context.frames=4", "seconds=1.25", "controllability.probe_clips=768", "controllability.probe_steps=4000"]
+TOKENS = ["data=synthetic", "data.source.num_clips=1024", "data.source.clip_len=80", "data.source.driven_share=0.5",
+          "fps=6.25"]
+
+
+def steps(out: Path, weights: Path) -> list[tuple[str, list[str]]]:
+    """(name, argv) of every step, in order."""
+    tokenizer, world_model = out / "tokenizer/checkpoints/last.ckpt", out / "world_model/checkpoints/last.ckpt"
+    ckpts = [f"tokenizer_ckpt={tokenizer}", f"world_model_ckpt={world_model}"]
+    py = sys.executable
+    return [
+        ("tokenizer", [py, "train.py", "experiment=gaia1/reference/tokenizer", f"hydra.run.dir={out / 'tokenizer'}",
+                       "ckpt_path=last"]),
+        ("tokenize", [py, "generate.py", "mode=tokenize", f"ckpt={tokenizer}", *TOKENS, f"out_dir={out / 'tokens'}",
+                      f"hydra.run.dir={out / 'tokenize'}"]),
+        ("world_model", [py, "train.py", "experiment=gaia1/reference/world_model", f"data.path={out / 'tokens/train'}",
+                         f"hydra.run.dir={out / 'world_model'}", "ckpt_path=last"]),
+        ("cross_entropy", [py, "-m", "gaia_app.tasks.world_model_report", f"--ckpt={world_model}",
+                           f"--tokens={out / 'tokens'}", f"--out={out / 'cross_entropy'}"]),
+        ("controllability", [py, "generate.py", "mode=controllability", *ckpts, *PROTOCOL,
+                             f"hydra.run.dir={out / 'controllability'}"]),
+        ("export", [py, "generate.py", "mode=export", *ckpts, f"controllability.probes={out / 'controllability/probes'}",
+                    f"out_dir={weights}", f"hydra.run.dir={out / 'export'}"]),
+    ]
+
+
+def commit() -> str:
+    """HEAD of the working tree, marked `-dirty` when it has uncommitted changes."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    head = git("rev-parse", "--short", "HEAD") or "unknown"
+    return head + ("-dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
+def machine() -> str:
+    return f"{platform.system()} {platform.machine()}, {os.cpu_count()} CPU cores, Python {platform.python_version()}"
+
+
+def shown(argv: list[str]) -> str:
+    """The command as a user would type it (python, not the interpreter's path)."""
+    return " ".join(["python", *argv[1:]])
+
+
+def manifest(records: list[dict], out: Path, weights: Path) -> str:
+    """MANIFEST.md: the files, how each step made them, and the recipe's measured tables."""
+    lines = ["# Shipped weights: GAIA-1 reference recipe", "",
+             "Made by `make reproduce` (`python -m gaia_app.tasks.reproduce`), which ran these steps in order; "
+             "docs/reference.md explains the recipe.", "",
+             f"- commit: {records[0]['commit']}", f"- machine: {records[0]['machine']}", "",
+             "| file | bytes |", "|---|---|"]
+    for path in sorted(p for p in weights.rglob("*") if p.is_file()):
+        lines.append(f"| {path.relative_to(weights.parent)} | {path.stat().st_size} |")
+    lines += ["", "| step | wall time | command |", "|---|---|---|"]
+    for r in records:
+        lines.append(f"| {r['step']} | {r['wall_s'] / 60:.1f} min | `{r['command']}` |")
+    lines.append(f"| total | {sum(r['wall_s'] for r in records) / 60:.1f} min | |")
+    for name, title in (("cross_entropy/cross_entropy.md", "Validation cross-entropy"),
+                        ("controllability/controllability.md", "Controllability")):
+        table = out / name
+        if table.is_file():
+            lines += ["", f"## {title}", "", table.read_text().strip()]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=Path("outputs/reference"))
+    parser.add_argument("--weights", type=Path, default=Path("gaia_app/weights/gaia1"))
+    parser.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
+    args = parser.parse_args(argv)
+    records_path = args.out / "reproduce.json"
+    done = {r["step"]: r for r in json.loads(records_path.read_text())} if records_path.is_file() else {}
+    records = []
+    for name, command in steps(args.out, args.weights):
+        if args.dry_run:
+            print(shown(command))
+            continue
+        if name in done:  # finished in an earlier invocation: keep its record
+            records.append(done[name])
+            continue
+        print(f"== {name}: {shown(command)}", flush=True)
+        start = time.perf_counter()
+        subprocess.run(command, cwd=ROOT, check=True)
+        records.append({"step": name, "command": shown(command), "wall_s": time.perf_counter() - start,
+                        "commit": commit(), "machine": machine()})
+        atomic_write_text(records_path, json.dumps(records, indent=2))
+    if not args.dry_run:
+        atomic_write_text(args.weights.parent / "MANIFEST.md", manifest(records, args.out, args.weights))
+        print(f"weights in {args.weights}, MANIFEST.md beside them")
+
+
+if __name__ == "__main__":
+    main()
