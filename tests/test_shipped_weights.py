@@ -8,10 +8,14 @@ import math
 import shutil
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 import torch
 import yaml
+from rerun.chunk import RrdReader
 
+from gaia_app.data.video_io import video_info
 from gaia_app.eval.controllability import save_probes
 from gaia_app.models.probes import InverseDynamicsProbe, SceneAttributeProbe
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
@@ -124,3 +128,22 @@ def test_reproduce_lists_every_step_of_the_recipe(capsys) -> None:
     assert [c.split()[1] for c in commands] == ["train.py", "generate.py", "train.py", "-m", "generate.py", "generate.py"]
     assert "experiment=gaia1/reference/tokenizer" in commands[0] and "experiment=gaia1/reference/world_model" in commands[2]
     assert "mode=export" in commands[-1] and "out_dir=gaia_app/weights/gaia1" in commands[-1]
+
+
+def test_showcase_steers_one_context_four_ways_and_prompts_against_none(shipped: Path, tmp_path: Path) -> None:
+    cfg = compose_config("generate", ["mode=showcase", f"weights={shipped}", "context.frames=2", "seconds=0.5",
+                                      "extras.print_config=false", *SIZE], tmp_path)
+    results = generate(cfg)["results"]
+    assert results["commands"] == ["brake / straight", "accelerate / straight", "keep / left", "keep / right"]
+    commanded = np.array(results["commanded_actions"])  # (4 commands, 2 context + 4 generated, 2)
+    assert commanded.shape == (4, 6, 2)
+    assert commanded[0, -1, 0] < commanded[0, 2, 0] and commanded[1, -1, 0] > commanded[1, 2, 0]  # brake, accelerate
+    assert commanded[2, 2:, 1].min() > 0 > commanded[3, 2:, 1].max()  # left, right
+    for panel, rows in (("commands", 5), ("prompts", 3)):
+        assert video_info(tmp_path / panel / "grid.mp4").num_frames == (6 if panel == "commands" else 4)
+        png = cv2.imread(str(tmp_path / panel / "strip.png"))
+        assert png.shape[0] == rows * 32 * 2  # one row per video, upscaled 2×
+    entities = {chunk.entity_path for chunk in RrdReader(str(tmp_path / "showcase.rrd")).stream().collect().stream().to_chunks()}
+    assert {"/actions/speed/brake_straight", "/actions/curvature/keep_left", "/commands/real",
+            "/prompts/It_is_night"} <= entities
+    assert "| brake / straight |" in (tmp_path / "showcase.md").read_text()

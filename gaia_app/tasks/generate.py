@@ -39,6 +39,7 @@ from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
 from gaia_app.tasks.controllability import controllability
 from gaia_app.tasks.evaluate import evaluate
 from gaia_app.tasks.export import export
+from gaia_app.tasks.showcase import showcase
 from gaia_app.tasks.gaia2_evaluate import gaia2_evaluate
 from gaia_app.tasks.gaia2_generate import GAIA2_MODES, gaia2_generate
 from gaia_app.tasks.rollout import ROLLOUT_MODES, rollout
@@ -156,7 +157,7 @@ MODES = {"reconstruct": (ImageTokenizerModule, reconstruct), "tokenize": (ImageT
 def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """The single-checkpoint modes of `MODES` on `cfg.ckpt`."""
     if cfg.mode not in MODES:
-        raise ValueError(f"mode={cfg.mode}: expected one of {sorted(MODES) + list(ROLLOUT_MODES) + ['controllability', 'evaluate', 'export']}")
+        raise ValueError(f"mode={cfg.mode}: expected one of {sorted(MODES) + list(ROLLOUT_MODES) + ['controllability', 'evaluate', 'export', 'showcase']}")
     if not cfg.ckpt:
         raise ValueError(f"mode={cfg.mode} needs ckpt=<checkpoint of a trained tokenizer>")
     module_type, run = MODES[cfg.mode]
@@ -194,6 +195,8 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
         results = evaluate(cfg, run_dir)
     elif cfg.mode == "export":
         results = export(cfg, run_dir)
+    elif cfg.mode == "showcase":
+        results = showcase(cfg, run_dir)
     else:
         results = run_component(cfg, run_dir)
     atomic_write_text(run_dir / "results.json", json.dumps(results, indent=2))
