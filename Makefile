@@ -8,7 +8,7 @@ CONSTRAINTS := requirements/constraints.txt
 DEMO_DIR := outputs/demo
 PYTEST_ARGS ?=
 
-.PHONY: demo test install install-dev benchmarks clean
+.PHONY: demo test install install-dev benchmarks clean reproduce
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -55,6 +55,12 @@ demo: install
 	@echo "demo outputs: $(DEMO_DIR)/rollout_{action,text}/{grid,future_0,future_1}.mp4 (real clip | futures)"
 	@echo "controllability (probes on rollouts, with ceiling and floor): $(DEMO_DIR)/controllability/controllability.md"
 	@echo "Rerun: .venv/bin/rerun $(DEMO_DIR)/rollout_action/rollout.rrd $(DEMO_DIR)/rollout_text/rollout.rrd"
+
+# The GAIA-1 reference recipe from scratch (docs/reference.md): tokenizer, token cache, world model, held-out
+# cross-entropy, controllability with probes, export to gaia_app/weights/gaia1 and gaia_app/weights/MANIFEST.md.
+# Resumable: run it again after an interruption. About 3 hours on 2 CPU cores.
+reproduce: install
+	$(PY) -m gaia_app.tasks.reproduce --out outputs/reference --weights gaia_app/weights/gaia1
 
 test: install-dev
 	$(PY) -m pytest $(PYTEST_ARGS)

@@ -8,6 +8,8 @@ import torch
 
 from gaia_app.data.synthetic import SyntheticClipDataset
 from gaia_app.eval.controllability import (
+    contrast_errors,
+    contrast_pairs,
     action_error,
     action_errors,
     attribute_shares,
@@ -55,6 +57,22 @@ def test_action_error_scores_only_the_steps_into_generated_frames() -> None:
     commanded[1, 3, 1] = 0.03  # the second sequence's curvature is off by 0.02 on one of two steps
     per_sequence = action_errors(ConstantDynamics(), frames, commanded, start=3)
     torch.testing.assert_close(per_sequence, torch.tensor([[1.0, 0.0], [1.0, 0.01]]))
+
+
+def test_contrast_cancels_a_per_scene_bias_and_charges_ignored_commands_the_commanded_difference() -> None:
+    # 3 commands (brake, keep left, accelerate) × 2 contexts × 4 steps; speed and curvature per step
+    commanded = torch.zeros(3, 2, 4, 2)
+    commanded[0, :, :, 0] = torch.tensor([8.0, 7.0, 6.0, 5.0])  # brake
+    commanded[1, :, :, 0], commanded[1, :, :, 1] = 9.0, 0.02  # keep speed, turn left
+    commanded[2, :, :, 0] = torch.tensor([10.0, 11.0, 12.0, 13.0])  # accelerate
+    commanded[2, :, :, 1] = -0.02  # and turn right
+    assert contrast_pairs(commanded) == [(2, 0), (1, 2)]
+    bias = torch.tensor([[3.0, 0.01], [-2.0, -0.005]])[None, :, None]  # each context's own probe error
+    torch.testing.assert_close(contrast_errors(commanded + bias, commanded), torch.zeros(2, 2))
+    ignored = commanded[1:2].expand(3, -1, -1, -1) + bias  # every future looks the same
+    torch.testing.assert_close(contrast_errors(ignored, commanded), torch.tensor([[5.0, 0.04], [5.0, 0.04]]))
+    with pytest.raises(ValueError, match="every command has the same speed"):
+        contrast_pairs(commanded[[0, 0]])
 
 
 class FixedScene(SceneAttributeProbe):

@@ -189,7 +189,10 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
     for row in rows.values():
         assert row["speed_mae"]["n"] == 2 and row["speed_mae"]["low"] <= row["speed_mae"]["mean"] <= row["speed_mae"]["high"]
         assert np.isfinite(row["curvature_mae"]["mean"]) and np.shape(row["per_command"]) == (2, 2)
-    assert set(results["actions"]["checks"]) == {"speed_mae", "curvature_mae"}
+        assert row["speed_contrast"]["n"] == 2 and np.isfinite(row["curvature_contrast"]["mean"])
+    assert set(results["actions"]["checks"]) == {"speed_contrast", "curvature_contrast"}
+    assert results["actions"]["contrasts"] == {"speed_contrast": ["keep/right", "brake/left"],
+                                               "curvature_contrast": ["brake/left", "keep/right"]}
     text = results["text"]
     assert text["targets"] == ["time_of_day=night"] and set(text["rows"]) == {"ceiling", "model", "floor"}
     model = text["rows"]["model"]["time_of_day=night"]

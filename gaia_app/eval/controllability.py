@@ -138,13 +138,45 @@ def train_probes(data: ProbeClips, steps: int = 1500, batch: int = 32, lr: float
 
 
 @torch.no_grad()
+def probed_actions(probe: InverseDynamicsProbe, frames: torch.Tensor, start: int) -> torch.Tensor:
+    """(b, t - start, 2) probed (speed, curvature) of the steps into frames start..t-1; frames (b, t, 3, H, W)."""
+    pairs = torch.stack([frames[:, start - 1 : -1], frames[:, start:]], dim=2)  # (b, t - start, 2, 3, H, W)
+    return probe(pairs.flatten(0, 1)).view(*pairs.shape[:2], 2)
+
+
 def action_errors(probe: InverseDynamicsProbe, frames: torch.Tensor, commanded: torch.Tensor, start: int) -> torch.Tensor:
     """(b, 2) mean absolute error per sequence of the probed (speed, curvature) against `commanded`, over the
     steps into frames start..t-1. frames: (b, t, 3, H, W); commanded: (b, t, 2) (a_{i-1} leads to frame i); start ≥ 1.
     """
-    pairs = torch.stack([frames[:, start - 1 : -1], frames[:, start:]], dim=2)  # (b, t - start, 2, 3, H, W)
-    probed = probe(pairs.flatten(0, 1)).view(*pairs.shape[:2], 2)
-    return (probed - commanded[:, start - 1 : -1]).abs().mean(dim=1)
+    return (probed_actions(probe, frames, start) - commanded[:, start - 1 : -1]).abs().mean(dim=1)
+
+
+def contrast_pairs(commanded: torch.Tensor) -> list[tuple[int, int]]:
+    """Per channel (speed, curvature), the (high, low) commands furthest apart: commanded (C, N, s, 2) → 2 pairs.
+    Refuses commands that do not differ in a channel (nothing to contrast)."""
+    means = commanded.mean(dim=(1, 2))  # (C, 2)
+    pairs = [(int(means[:, k].argmax()), int(means[:, k].argmin())) for k in range(2)]
+    for k, (high, low) in enumerate(pairs):
+        if means[high, k] - means[low, k] < 1e-6:
+            raise ValueError(f"controllability.commands: every command has the same {('speed', 'curvature')[k]}; "
+                             "the contrast needs two that differ")
+    return pairs
+
+
+def contrast_errors(probed: torch.Tensor, commanded: torch.Tensor) -> torch.Tensor:
+    """(N, 2) per context: |(probed high − probed low) − (commanded high − commanded low)| of the horizon-mean speed
+    (high/low: accelerate/brake) and curvature (left/right), the pairs of `contrast_pairs`.
+
+    probed, commanded: (C, N, s, 2) of C commands × N contexts over s scored steps. The probe's error on a scene is
+    mostly a bias shared by every future of that scene (it misjudges the depth of the road), which the difference
+    of two futures of one context cancels; a model that ignores the commands scores the commanded difference.
+    """
+    probed_mean, commanded_mean = probed.mean(dim=2), commanded.mean(dim=2)  # (C, N, 2)
+    errors = []
+    for k, (high, low) in enumerate(contrast_pairs(commanded)):
+        wanted = commanded_mean[high, :, k] - commanded_mean[low, :, k]
+        errors.append((probed_mean[high, :, k] - probed_mean[low, :, k] - wanted).abs())
+    return torch.stack(errors, dim=1)
 
 
 @torch.no_grad()

@@ -42,12 +42,14 @@ from gaia_app.data.synthetic.generate import SyntheticSample
 from gaia_app.data.synthetic.scenario import TIMES_OF_DAY, WEATHERS, Scenario
 from gaia_app.eval.controllability import (
     ProbeClips,
-    action_errors,
     attribute_shares,
     cat_probe_clips,
+    contrast_errors,
+    contrast_pairs,
     load_probes,
     phase_clips,
     probe_clips,
+    probed_actions,
     save_probes,
     train_probes,
 )
@@ -60,6 +62,8 @@ from gaia_app.tasks.rollout import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 
 SOURCE_FPS = 25.0
+# the adherence metrics with targets: contrast errors of speed (accelerate vs brake) and curvature (left vs right)
+CONTRASTS = ("speed_contrast", "curvature_contrast")
 # every weather and time of day equally often: probes see enough snow and night, ceilings have clips of each value
 UNIFORM_MIX = {"weather_mix": dict.fromkeys(WEATHERS, 1.0), "time_of_day_mix": dict.fromkeys(TIMES_OF_DAY, 1.0)}
 
@@ -176,10 +180,16 @@ def rollout_frames(pipeline: Gaia1Pipeline, context: torch.Tensor | None, frames
 
 
 def error_row(probe, video: torch.Tensor, commanded: torch.Tensor, start: int, commands: int) -> dict[str, Any]:
-    """Speed and curvature MAE of a command-major batch: 95 % intervals over contexts, and the mean per command."""
-    errors = action_errors(probe, video, commanded, start).view(commands, -1, 2)  # (C, N, 2)
+    """Of a command-major batch, with 95 % intervals over contexts: the contrast errors (speed: accelerate vs
+    brake, curvature: left vs right, gaia_app.eval.controllability.contrast_errors), the MAE against every command,
+    and the MAE per command."""
+    probed = probed_actions(probe, video, start).unflatten(0, (commands, -1))  # (C, N, s, 2)
+    wanted = commanded[:, start - 1 : -1].unflatten(0, (commands, -1))
+    errors = (probed - wanted).abs().mean(dim=2)  # (C, N, 2)
     per_context = errors.mean(dim=0)
-    row = {name: mean_interval(per_context[:, k].tolist()).as_dict() for k, name in enumerate(("speed_mae", "curvature_mae"))}
+    contrast = contrast_errors(probed, wanted)
+    row = {name: mean_interval(contrast[:, k].tolist()).as_dict() for k, name in enumerate(CONTRASTS)}
+    row |= {name: mean_interval(per_context[:, k].tolist()).as_dict() for k, name in enumerate(("speed_mae", "curvature_mae"))}
     row["per_command"] = errors.mean(dim=1).tolist()
     return row
 
@@ -192,6 +202,7 @@ def action_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: tor
     contexts = probe_clips(world_clips(cfg.context.seed, c.contexts, height, width, total, rate), rate, total)
     commands = [tuple(cmd) for cmd in c.commands]
     commanded = commanded_actions(contexts, t0, frames, rate, commands)
+    pairs = contrast_pairs(commanded[:, t0:-1].unflatten(0, (len(commands), -1)))  # fails before any rollout
     n = c.contexts
     repeat = lambda x: x.repeat(len(commands), *[1] * (x.ndim - 1))  # noqa: E731  (command-major, like `commanded`)
     videos = {
@@ -202,15 +213,16 @@ def action_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: tor
         "reference": repeat(contexts.frames),
     }
     rows = {name: error_row(probe, video, commanded, t0 + 1, len(commands)) for name, video in videos.items()}
+    contrasted = {metric: ["/".join(commands[high]), "/".join(commands[low])] for metric, (high, low) in zip(CONTRASTS, pairs)}
     return {"commands": [list(cmd) for cmd in commands], "contexts": n, "scored_steps": frames - 1, "rows": rows,
-            "checks": action_checks(rows)}
+            "contrasts": contrasted, "checks": action_checks(rows)}
 
 
 def action_checks(rows: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
     """Per metric: can the probe judge adherence (ceiling ≤ ½ floor and ≤ ½ reference), and does the model reach
     the target (model ≤ floor − ½ (floor − ceiling))?"""
     checks = {}
-    for metric in ("speed_mae", "curvature_mae"):
+    for metric in CONTRASTS:
         ceiling, model, floor, reference = (rows[k][metric]["mean"] for k in ("ceiling", "model", "floor", "reference"))
         target = floor - 0.5 * (floor - ceiling)
         checks[metric] = {"probe_reads_it": ceiling <= 0.5 * floor and ceiling <= 0.5 * reference,
@@ -260,20 +272,26 @@ TEXT_ROWS = {"ceiling": "ceiling (real clips)", "model": "model (text-prompted)"
 def markdown(results: dict[str, Any]) -> str:
     """The two tables of a controllability run, with 95 % intervals and the probe checks."""
     actions, text = results["actions"], results["text"]
-    lines = [f"Action adherence: mean |probed − commanded| over {actions['contexts']} contexts × "
-             f"{len(actions['commands'])} commands ({', '.join('/'.join(c) for c in actions['commands'])}), "
-             f"{actions['scored_steps']} scored steps each; ± 95 % interval over contexts.", "",
-             "| action adherence | speed MAE (m/s) | curvature MAE (1/m) |", "|---|---|---|"]
+    speed, curvature = (" vs ".join(actions["contrasts"][m]) for m in CONTRASTS)
+    lines = [f"Action adherence over {actions['contexts']} held-out contexts × {len(actions['commands'])} commands "
+             f"({', '.join('/'.join(c) for c in actions['commands'])}), {actions['scored_steps']} scored steps each; "
+             "± 95 % interval over contexts. Contrast error: |probed difference − commanded difference| of the "
+             f"horizon-mean speed ({speed}) and curvature ({curvature}) of two futures of one context; a rollout "
+             "that ignores its commands scores the commanded difference. MAE: mean |probed − commanded| over all "
+             "commands (diagnostic; it carries the probe's per-scene bias).", "",
+             "| action adherence | speed contrast error (m/s) | curvature contrast error (1/m) | speed MAE (m/s) | "
+             "curvature MAE (1/m) |", "|---|---|---|---|---|"]
     for key, name in ACTION_ROWS.items():
         row = actions["rows"][key]
-        lines.append(f"| {name} | {fmt(row['speed_mae'], 3)} | {fmt(row['curvature_mae'], 4)} |")
+        lines.append(f"| {name} | {fmt(row['speed_contrast'], 3)} | {fmt(row['curvature_contrast'], 4)} | "
+                     f"{fmt(row['speed_mae'], 3)} | {fmt(row['curvature_mae'], 4)} |")
     checks = actions["checks"]
     lines.append("| target: model ≤ floor − ½ (floor − ceiling) | " + " | ".join(
         f"{checks[m]['target']:.{d}f} ({'met' if checks[m]['model_meets_target'] else 'missed'})"
-        for m, d in (("speed_mae", 3), ("curvature_mae", 4))) + " |")
+        for m, d in zip(CONTRASTS, (3, 4))) + " | | |")
     lines.append("| probe check: ceiling ≤ ½ floor and ≤ ½ reference | " + " | ".join(
         f"{'yes' if checks[m]['probe_reads_it'] else 'NO'} ({checks[m]['ceiling_over_floor']:.2f}, "
-        f"{checks[m]['ceiling_over_reference']:.2f})" for m in ("speed_mae", "curvature_mae")) + " |")
+        f"{checks[m]['ceiling_over_reference']:.2f})" for m in CONTRASTS) + " | | |")
     lines += ["", f"Text adherence: share of rollouts ({text['rollouts_per_prompt']} per prompt, generated from the "
               "prompt alone) whose frames mostly read the prompted value; [95 % Wilson interval].", "",
               "| text adherence | " + " | ".join(text["targets"]) + " |", "|---" * (len(text["targets"]) + 1) + "|"]

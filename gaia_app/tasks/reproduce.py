@@ -5,7 +5,7 @@
 Steps, each a train.py / generate.py command that resumes or skips finished work when run again:
   tokenizer        train.py experiment=gaia1/reference/tokenizer
   tokenize         generate.py mode=tokenize: 1024 synthetic clips of 3.2 s, half of them leaving their policy for
-                   a random open-loop command, tokenized at 6.25 Hz (+ the held-out val world)
+                   a random open-loop command, tokenized at 6.25 Hz (+ 128 clips of the held-out val world)
   world_model      train.py experiment=gaia1/reference/world_model
   cross_entropy    validation cross-entropy per conditioning mode vs the copy-previous-frame and unigram baselines
   controllability  generate.py mode=controllability: probes trained at the recipe's size, 32 held-out contexts
@@ -30,8 +30,8 @@ from gaia_app.utils.run_dir import atomic_write_text
 ROOT = Path(__file__).resolve().parents[2]
 # the recipe's protocol: 4 context frames and 8 generated ones (1.25 s) fill the world model's 12-step window
 PROTOCOL = ["context.frames=4", "seconds=1.25", "controllability.probe_clips=768", "controllability.probe_steps=4000"]
-TOKENS = ["data=synthetic", "data.source.num_clips=1024", "data.source.clip_len=80", "data.source.driven_share=0.5",
-          "fps=6.25"]
+TOKENS = ["data=synthetic", "data.source.num_clips=1024", "data.val_source.num_clips=128", "data.source.clip_len=80",
+          "data.source.driven_share=0.5", "fps=6.25"]
 
 
 def steps(out: Path, weights: Path) -> list[tuple[str, list[str]]]:
