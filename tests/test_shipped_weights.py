@@ -125,7 +125,8 @@ def test_reproduce_lists_every_step_of_the_recipe(capsys) -> None:
 
     main(["--dry-run", "--out", "outputs/reference"])
     commands = capsys.readouterr().out.strip().splitlines()
-    assert [c.split()[1] for c in commands] == ["train.py", "generate.py", "train.py", "-m", "generate.py", "generate.py"]
+    assert [c.split()[1] for c in commands] == ["train.py", "generate.py", "train.py", "-m", "benchmarks/probe_quality.py",
+                                                "generate.py", "generate.py"]
     assert "experiment=gaia1/reference/tokenizer" in commands[0] and "experiment=gaia1/reference/world_model" in commands[2]
     assert "mode=export" in commands[-1] and "out_dir=gaia_app/weights/gaia1" in commands[-1]
 

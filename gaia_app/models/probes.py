@@ -102,7 +102,7 @@ class InverseDynamicsProbe(nn.Module):
 class SceneAttributeProbe(nn.Module):
     """One frame → logits per attribute of `ATTRIBUTES` (weather, time of day, traffic light)."""
 
-    def __init__(self, widths: Sequence[int] = (16, 32, 64, 64)):
+    def __init__(self, widths: Sequence[int] = (32, 64, 96, 128)):
         super().__init__()
         self.encoder = FrameEncoder(3, widths)
         self.heads = nn.ModuleDict({name: nn.Linear(self.encoder.dim, len(values)) for name, values in ATTRIBUTES.items()})

@@ -8,7 +8,9 @@ Steps, each a train.py / generate.py command that resumes or skips finished work
                    a random open-loop command, tokenized at 6.25 Hz (+ 128 clips of the held-out val world)
   world_model      train.py experiment=gaia1/reference/world_model
   cross_entropy    validation cross-entropy per conditioning mode vs the copy-previous-frame and unigram baselines
-  controllability  generate.py mode=controllability: probes trained at the recipe's size, 32 held-out contexts
+  probes           benchmarks/probe_quality.py: controllability probes for the recipe's size and protocol, and
+                   their model-free check (ceiling vs reference, scene accuracy on real frames)
+  controllability  generate.py mode=controllability with those probes: 32 held-out contexts × 4 commands, prompts
   export           generate.py mode=export into the weights folder (float16 safetensors + YAML + probes)
 Then MANIFEST.md beside the weights folder (gaia_app/weights/MANIFEST.md) records, per step, the exact command, its wall time, the commit and the
 machine, with the cross-entropy and controllability tables.
@@ -28,8 +30,10 @@ from pathlib import Path
 from gaia_app.utils.run_dir import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[2]
-# the recipe's protocol: 4 context frames and 8 generated ones (1.25 s) fill the world model's 12-step window
-PROTOCOL = ["context.frames=4", "seconds=1.25", "controllability.probe_clips=768", "controllability.probe_steps=4000"]
+# the recipe's protocol: 4 context frames and 8 generated ones (1.25 s) fill the world model's 12-step window; the
+# probes are trained (and checked without any model) for exactly that protocol
+PROTOCOL = ["context.frames=4", "seconds=1.25"]
+PROBES = ["--context-frames=4", "--seconds=1.25", "--probe-clips=768", "--probe-steps=4000"]
 TOKENS = ["data=synthetic", "data.source.num_clips=1024", "data.val_source.num_clips=128", "data.source.clip_len=80",
           "data.source.driven_share=0.5", "fps=6.25"]
 
@@ -38,6 +42,7 @@ def steps(out: Path, weights: Path) -> list[tuple[str, list[str]]]:
     """(name, argv) of every step, in order."""
     tokenizer, world_model = out / "tokenizer/checkpoints/last.ckpt", out / "world_model/checkpoints/last.ckpt"
     ckpts = [f"tokenizer_ckpt={tokenizer}", f"world_model_ckpt={world_model}"]
+    probes = out / "probes/probes"
     py = sys.executable
     return [
         ("tokenizer", [py, "train.py", "experiment=gaia1/reference/tokenizer", f"hydra.run.dir={out / 'tokenizer'}",
@@ -48,9 +53,10 @@ def steps(out: Path, weights: Path) -> list[tuple[str, list[str]]]:
                          f"hydra.run.dir={out / 'world_model'}", "ckpt_path=last"]),
         ("cross_entropy", [py, "-m", "gaia_app.tasks.world_model_report", f"--ckpt={world_model}",
                            f"--tokens={out / 'tokens'}", f"--out={out / 'cross_entropy'}"]),
-        ("controllability", [py, "generate.py", "mode=controllability", *ckpts, *PROTOCOL,
+        ("probes", [py, "benchmarks/probe_quality.py", f"--out={out / 'probes'}", *PROBES]),
+        ("controllability", [py, "generate.py", "mode=controllability", *ckpts, *PROTOCOL, f"controllability.probes={probes}",
                              f"hydra.run.dir={out / 'controllability'}"]),
-        ("export", [py, "generate.py", "mode=export", *ckpts, f"controllability.probes={out / 'controllability/probes'}",
+        ("export", [py, "generate.py", "mode=export", *ckpts, f"controllability.probes={probes}",
                     f"out_dir={weights}", f"hydra.run.dir={out / 'export'}"]),
     ]
 
@@ -85,7 +91,7 @@ def manifest(records: list[dict], out: Path, weights: Path) -> str:
     for r in records:
         lines.append(f"| {r['step']} | {r['wall_s'] / 60:.1f} min | `{r['command']}` |")
     lines.append(f"| total | {sum(r['wall_s'] for r in records) / 60:.1f} min | |")
-    for name, title in (("cross_entropy/cross_entropy.md", "Validation cross-entropy"),
+    for name, title in (("cross_entropy/cross_entropy.md", "Held-out cross-entropy"),
                         ("controllability/controllability.md", "Controllability")):
         table = out / name
         if table.is_file():
