@@ -226,6 +226,16 @@ def test_gallery_strips_and_headless_viewer_screenshot(checkpoints, tmp_path: Pa
     assert shot.std() > 20 and len(np.unique(shot.reshape(-1, 3), axis=0)) > 1000
 
 
+def test_gallery_of_the_showcase_copies_its_strips(checkpoints, tmp_path: Path) -> None:
+    demo = tmp_path / "demo"
+    run(checkpoints, demo / "showcase", "mode=showcase", "seconds=0.5", decoder=False)
+    written = make_gallery(demo, tmp_path / "gallery")
+    assert written[:2] == [tmp_path / "gallery" / "commands.png", tmp_path / "gallery" / "prompts.png"]
+    commands = cv2.imread(str(written[0]))
+    assert commands.shape == cv2.imread(str(demo / "showcase" / "commands" / "strip.png")).shape
+    assert commands.shape[0] == 5 * 2 * 32  # real continuation + 4 commands, 2× upscaled
+
+
 def test_evaluate_mode_scores_model_ceiling_and_floor(checkpoints, tmp_path: Path) -> None:
     results = run(checkpoints, tmp_path, "mode=evaluate", "evaluate.contexts=3", "seconds=0.5", "evaluate.probe_clips=2",
                   "evaluate.probe_steps=2")

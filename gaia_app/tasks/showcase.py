@@ -30,6 +30,7 @@ from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.tasks.controllability import commanded_actions, rollout_frames, world_clips
 from gaia_app.tasks.rollout import CONTEXT_COLOUR, FUTURE_COLOUR, load_pipeline, staging
 from gaia_app.utils.run_dir import atomic_write_text
+from gaia_app.viz.blueprints import showcase_blueprint
 from gaia_app.viz.media import to_hwc_uint8, video_grid
 
 STRIPE = 2  # pixels of the context / generated marker at the top of each frame
@@ -96,19 +97,20 @@ def entity(name: str) -> str:
 
 
 def log_showcase(path: Path, commands: dict[str, Any], prompts: dict[str, Any], fps: float) -> None:
-    """Every video on the `step` timeline and each command's speed and curvature as plots."""
+    """Every video on the `frame` timeline (the world model's steps) and each command's speed and curvature as plots."""
     rec = rr.RecordingStream("gaia_app", recording_id=f"showcase-{path.parent.name}")
     rec.save(str(path))
+    rec.send_blueprint(showcase_blueprint([entity(n) for n in commands["names"][1:]], [entity(n) for n in prompts["names"]]))
     videos = {"commands/real": commands["real"][0]}
     videos |= {f"commands/{name}": video for name, video in zip(commands["names"][1:], commands["futures"])}
     videos |= {f"prompts/{name}": video for name, video in zip(prompts["names"], prompts["futures"])}
     for t in range(max(len(v) for v in videos.values())):
-        rec.set_time("step", sequence=t)
+        rec.set_time("frame", sequence=t)
         rec.set_time("time", duration=t / fps)
         for name, video in videos.items():
             if t < len(video):
-                group, label_ = name.split("/", 1)
-                rec.log(f"{group}/{entity(label_)}", rr.Image(to_hwc_uint8(video[t])))
+                panel, title = name.split("/", 1)
+                rec.log(f"{panel}/{entity(title)}", rr.Image(to_hwc_uint8(video[t])))
         for name, actions in zip(commands["names"][1:], commands["actions"]):
             if t < len(actions):
                 key = entity(name)

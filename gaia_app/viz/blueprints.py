@@ -112,3 +112,17 @@ def rollout_blueprint(num_futures: int, has_real: bool, has_actions: bool, has_g
                      row_shares=[3, 2, 2]),
         collapse_panels=True,
     )
+
+
+def showcase_blueprint(commands: Sequence[str], prompts: Sequence[str]) -> rrb.Blueprint:
+    """`generate.py mode=showcase` (entity paths of gaia_app/tasks/showcase.py): the real continuation and one future
+    per command side by side, the prompt rollouts below, then the commanded speed and curvature of every future."""
+    steered = [rrb.Spatial2DView(origin="/commands/real", name="real continuation")] + [
+        rrb.Spatial2DView(origin=f"/commands/{name}", name=name) for name in commands]
+    prompted = [rrb.Spatial2DView(origin=f"/prompts/{name}", name=name) for name in prompts]
+    series = [rrb.TimeSeriesView(origin="/actions/speed", name="commanded speed (m/s)"),
+              rrb.TimeSeriesView(origin="/actions/curvature", name="commanded curvature (1/m)")]
+    return rrb.Blueprint(
+        rrb.Vertical(rrb.Horizontal(*steered), rrb.Horizontal(*prompted), rrb.Horizontal(*series), row_shares=[3, 3, 2]),
+        collapse_panels=True,
+    )

@@ -1,8 +1,10 @@
-"""README gallery pictures from `make demo` outputs.
+"""README gallery pictures from `make demo` (or `make demo-train`) outputs.
 
     python -m gaia_app.viz.gallery outputs/demo --out docs/gallery
 
-For each rollout folder (`rollout_action`, `rollout_text`) a PNG of a few frames of its `grid.mp4`
+From `make demo` (a `showcase/` folder, gaia_app/tasks/showcase.py): its two labelled strips, `commands.png` (one
+context steered four ways) and `prompts.png` (night, snow against no prompt), and a headless screenshot of
+`showcase.rrd`. From `make demo-train`: for each rollout folder (`rollout_action`, `rollout_text`) a PNG of a few frames of its `grid.mp4`
 (real clip | future 0 | future 1 …, one row per time, labelled), and a screenshot of the action rollout's
 Rerun recording in the headless viewer (`rerun_rollout.png`; skipped with the reason where the viewer
 cannot start, see gaia_app/viz/screenshot.py).
@@ -50,8 +52,27 @@ def write_png(path: Path, rgb: np.ndarray) -> None:
     atomic_write_bytes(path, encoded.tobytes())
 
 
+def showcase_gallery(showcase: Path, out: Path) -> list[Path]:
+    """The showcase's strips as commands.png and prompts.png, and a screenshot of its recording."""
+    written = []
+    for panel in ("commands", "prompts"):
+        image = cv2.imread(str(showcase / panel / "strip.png"))
+        if image is None:
+            raise FileNotFoundError(f"{showcase / panel / 'strip.png'} is missing or unreadable: run `make demo` first")
+        written.append(out / f"{panel}.png")
+        write_png(written[-1], cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
+    try:
+        written.append(screenshot_recording(showcase / "showcase.rrd", out / "rerun_showcase.png", max_size=1280))
+    except ViewerUnavailable as err:
+        print(f"skipped the Rerun screenshot: {err}")
+    return written
+
+
 def make_gallery(demo_dir: Path, out: Path) -> list[Path]:
     """Write the gallery PNGs of `demo_dir` into `out`; returns the files written."""
+    if (demo_dir / "showcase").is_dir():
+        out.mkdir(parents=True, exist_ok=True)
+        return showcase_gallery(demo_dir / "showcase", out)
     missing = [name for name in ROLLOUTS if not (demo_dir / name / "grid.mp4").is_file()]
     if missing:
         raise FileNotFoundError(f"{demo_dir} lacks {', '.join(missing)}/grid.mp4: run `make demo` first")
