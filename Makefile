@@ -8,7 +8,7 @@ CONSTRAINTS := requirements/constraints.txt
 DEMO_DIR := outputs/demo
 PYTEST_ARGS ?=
 
-.PHONY: demo test install install-dev benchmarks clean reproduce
+.PHONY: demo demo-train test install install-dev benchmarks clean reproduce
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -26,35 +26,46 @@ $(VENV)/.installed-dev: pyproject.toml $(CONSTRAINTS) | $(PY)
 install: $(VENV)/.installed
 install-dev: $(VENV)/.installed-dev
 
-# The main job, GAIA-1 end to end on the built-in synthetic world (docs/generate.md): train the tiny
-# tokenizer, tokenize clips at 6.25 Hz, train the world model and the video decoder, then generate an
-# action-conditioned rollout (through the video decoder, 25 Hz) and a text-conditioned one (frames decoded
-# one by one by the tokenizer, 6.25 Hz), and score action / text adherence with probes. Every step reuses what an earlier run finished
-# (ckpt_path=last resumes or skips a training run; tokenize skips clips already on disk).
-DEMO_CKPTS := tokenizer_ckpt=$(DEMO_DIR)/tokenizer/checkpoints/last.ckpt \
-	world_model_ckpt=$(DEMO_DIR)/world_model/checkpoints/last.ckpt \
-	decoder_ckpt=$(DEMO_DIR)/video_decoder/checkpoints/last.ckpt
-# a smoke-size controllability table: sampling 128 rollouts of 448-token frames for the default protocol (32 contexts ×
-# 4 commands) takes about 6 min per frame on 2 cores; docs/generate.md
-DEMO_CONTROLLABILITY := controllability.probe_clips=48 controllability.probe_steps=400 controllability.contexts=4 \
-	controllability.text_repeats=2 controllability.real_clips=24 'controllability.prompts.weather=[clear,snow]'
+# The main job: GAIA-1 from the shipped reference weights (gaia_app/weights/gaia1, made by `make reproduce`;
+# docs/reference.md). One held-out context of the synthetic world steered four ways (brake / accelerate / left /
+# right) and generation from the prompts "night" and "snow" against no prompt, as mp4 + PNG strips + one .rrd,
+# then the controllability table with the shipped probes (a smaller protocol than the MANIFEST's 32 contexts).
+# Frames are decoded one by one by the tokenizer: the video decoder does not yet beat that (docs/video_decoder.md).
+PROTOCOL := context.frames=4 seconds=1.25
+DEMO_CONTROLLABILITY := controllability.contexts=8 controllability.text_repeats=8 controllability.real_clips=32 \
+	'controllability.prompts.weather=[clear,snow]'
 demo: install
-	$(PY) train.py experiment=gaia1/demo/tokenizer hydra.run.dir=$(DEMO_DIR)/tokenizer ckpt_path=last
-	$(PY) generate.py mode=tokenize ckpt=$(DEMO_DIR)/tokenizer/checkpoints/last.ckpt data=synthetic \
-		data.source.clip_len=32 fps=6.25 max_clips=96 out_dir=$(DEMO_DIR)/tokens hydra.run.dir=$(DEMO_DIR)/tokenize
-	$(PY) train.py experiment=gaia1/demo/world_model hydra.run.dir=$(DEMO_DIR)/world_model ckpt_path=last \
-		data.path=$(DEMO_DIR)/tokens/train
-	$(PY) train.py experiment=gaia1/demo/video_decoder hydra.run.dir=$(DEMO_DIR)/video_decoder ckpt_path=last \
-		model.tokenizer_ckpt=$(DEMO_DIR)/tokenizer/checkpoints/last.ckpt
-	$(PY) generate.py mode=action $(DEMO_CKPTS) speed=accelerate curvature=left decoder_steps=4 \
-		hydra.run.dir=$(DEMO_DIR)/rollout_action
-	$(PY) generate.py mode=text $(DEMO_CKPTS) decoder_ckpt=null 'prompt="It is night. It is raining."' \
-		hydra.run.dir=$(DEMO_DIR)/rollout_text
-	$(PY) generate.py mode=controllability $(DEMO_CKPTS) decoder_ckpt=null hydra.run.dir=$(DEMO_DIR)/controllability \
-		$(DEMO_CONTROLLABILITY)
-	@echo "demo outputs: $(DEMO_DIR)/rollout_{action,text}/{grid,future_0,future_1}.mp4 (real clip | futures)"
-	@echo "controllability (probes on rollouts, with ceiling and floor): $(DEMO_DIR)/controllability/controllability.md"
-	@echo "Rerun: .venv/bin/rerun $(DEMO_DIR)/rollout_action/rollout.rrd $(DEMO_DIR)/rollout_text/rollout.rrd"
+	$(PY) generate.py mode=showcase weights=gaia1 $(PROTOCOL) hydra.run.dir=$(DEMO_DIR)/showcase
+	$(PY) generate.py mode=controllability weights=gaia1 $(PROTOCOL) $(DEMO_CONTROLLABILITY) \
+		hydra.run.dir=$(DEMO_DIR)/controllability
+	@echo "steered futures: $(DEMO_DIR)/showcase/commands/{grid.mp4,strip.png}; prompts: $(DEMO_DIR)/showcase/prompts/"
+	@echo "controllability (ceiling / model / floor): $(DEMO_DIR)/controllability/controllability.md"
+	@echo "Rerun: .venv/bin/rerun $(DEMO_DIR)/showcase/showcase.rrd"
+
+# The whole chain trained from scratch at smoke size (minutes, not the recipe): tokenizer, token cache, world
+# model, video decoder, rollouts through the video decoder and the tokenizer, and a smoke-size controllability
+# table. Every step reuses what an earlier run finished (ckpt_path=last; tokenize skips clips on disk).
+TRAIN_DIR := outputs/demo_train
+TRAIN_CKPTS := tokenizer_ckpt=$(TRAIN_DIR)/tokenizer/checkpoints/last.ckpt \
+	world_model_ckpt=$(TRAIN_DIR)/world_model/checkpoints/last.ckpt \
+	decoder_ckpt=$(TRAIN_DIR)/video_decoder/checkpoints/last.ckpt
+TRAIN_CONTROLLABILITY := controllability.probe_clips=48 controllability.probe_steps=400 controllability.contexts=4 \
+	controllability.text_repeats=2 controllability.real_clips=24 'controllability.prompts.weather=[clear,snow]'
+demo-train: install
+	$(PY) train.py experiment=gaia1/demo/tokenizer hydra.run.dir=$(TRAIN_DIR)/tokenizer ckpt_path=last
+	$(PY) generate.py mode=tokenize ckpt=$(TRAIN_DIR)/tokenizer/checkpoints/last.ckpt data=synthetic \
+		data.source.clip_len=32 fps=6.25 max_clips=96 out_dir=$(TRAIN_DIR)/tokens hydra.run.dir=$(TRAIN_DIR)/tokenize
+	$(PY) train.py experiment=gaia1/demo/world_model hydra.run.dir=$(TRAIN_DIR)/world_model ckpt_path=last \
+		data.path=$(TRAIN_DIR)/tokens/train
+	$(PY) train.py experiment=gaia1/demo/video_decoder hydra.run.dir=$(TRAIN_DIR)/video_decoder ckpt_path=last \
+		model.tokenizer_ckpt=$(TRAIN_DIR)/tokenizer/checkpoints/last.ckpt
+	$(PY) generate.py mode=action $(TRAIN_CKPTS) speed=accelerate curvature=left decoder_steps=4 \
+		hydra.run.dir=$(TRAIN_DIR)/rollout_action
+	$(PY) generate.py mode=text $(TRAIN_CKPTS) decoder_ckpt=null 'prompt="It is night. It is raining."' \
+		hydra.run.dir=$(TRAIN_DIR)/rollout_text
+	$(PY) generate.py mode=controllability $(TRAIN_CKPTS) decoder_ckpt=null hydra.run.dir=$(TRAIN_DIR)/controllability \
+		$(TRAIN_CONTROLLABILITY)
+	@echo "Rerun: .venv/bin/rerun $(TRAIN_DIR)/rollout_action/rollout.rrd $(TRAIN_DIR)/rollout_text/rollout.rrd"
 
 # The GAIA-1 reference recipe from scratch (docs/reference.md): tokenizer, token cache, world model, held-out
 # cross-entropy, controllability with probes, export to gaia_app/weights/gaia1 and gaia_app/weights/MANIFEST.md.
