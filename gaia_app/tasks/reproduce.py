@@ -84,14 +84,15 @@ def manifest(records: list[dict], out: Path, weights: Path) -> str:
     lines = ["# Shipped weights: GAIA-1 reference recipe", "",
              "Made by `make reproduce` (`python -m gaia_app.tasks.reproduce`), which ran these steps in order; "
              "docs/reference.md explains the recipe.", "",
-             f"- commit: {records[0]['commit']}", f"- machine: {records[0]['machine']}", "",
+             f"- machine: {records[0]['machine']}", "",
              "| file | bytes |", "|---|---|"]
     for path in sorted(p for p in weights.rglob("*") if p.is_file()):
         lines.append(f"| {path.relative_to(weights.parent)} | {path.stat().st_size} |")
-    lines += ["", "| step | wall time | command |", "|---|---|---|"]
+    lines += ["", "| step | wall time | commit | command |", "|---|---|---|---|"]
     for r in records:
-        lines.append(f"| {r['step']} | {r['wall_s'] / 60:.1f} min | `{r['command']}` |")
-    lines.append(f"| total | {sum(r['wall_s'] for r in records) / 60:.1f} min | |")
+        note = f" ({r['note']})" if r.get("note") else ""
+        lines.append(f"| {r['step']} | {r['wall_s'] / 60:.1f} min{note} | {r['commit']} | `{r['command']}` |")
+    lines.append(f"| total | {sum(r['wall_s'] for r in records) / 60:.1f} min | | |")
     for name, title in (("cross_entropy/cross_entropy.md", "Held-out cross-entropy"),
                         ("controllability/controllability.md", "Controllability")):
         table = out / name
