@@ -62,7 +62,7 @@ def test_generation_and_controllability_run_from_weights_alone(shipped: Path, tm
     results = generate(cfg)["results"]
     assert (tmp_path / "a" / "grid.mp4").is_file() and results["fps"] == 6.25
     args = ["mode=controllability", f"weights={shipped}", "seconds=0.5", "controllability.contexts=2",
-            "controllability.commands=[[brake,left]]", "controllability.prompts.time_of_day=[night]",
+            "controllability.commands=[[brake,left],[keep,right]]", "controllability.prompts.time_of_day=[night]",
             "~controllability.prompts.weather", "controllability.text_repeats=1", "controllability.real_clips=3",
             "extras.print_config=false", *SIZE]
     results = generate(compose_config("generate", args, tmp_path / "c"))["results"]
