@@ -23,12 +23,11 @@ import torch
 from omegaconf import DictConfig
 
 from gaia_app.data.synthetic.gallery import label
-from gaia_app.data.transforms import to_uint8
 from gaia_app.data.video_io import write_video
 from gaia_app.eval.controllability import probe_clips
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.tasks.controllability import commanded_actions, rollout_frames, world_clips
-from gaia_app.tasks.rollout import CONTEXT_COLOUR, FUTURE_COLOUR, load_pipeline, staging
+from gaia_app.tasks.rollout import load_pipeline, mark, staging
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.viz.blueprints import showcase_blueprint
 from gaia_app.viz.media import to_hwc_uint8, video_grid
@@ -37,11 +36,8 @@ STRIPE = 2  # pixels of the context / generated marker at the top of each frame
 
 
 def marked(frames: torch.Tensor, context: int) -> np.ndarray:
-    """(k, t, 3, H, W) in [-1, 1] → uint8 (k, t, H, W, 3) with a green stripe on context frames, red on generated."""
-    out = to_uint8(frames).numpy().transpose(0, 1, 3, 4, 2).copy()
-    out[:, :context, :STRIPE] = CONTEXT_COLOUR
-    out[:, context:, :STRIPE] = FUTURE_COLOUR
-    return out
+    """(k, t, 3, H, W) in [-1, 1] → uint8 (k, t, H, W, 3), context frames marked green, generated red (rollout.mark)."""
+    return mark(frames, context, upsample=0).transpose(0, 1, 3, 4, 2)
 
 
 def strip(videos: np.ndarray, names: list[str], scale: int = 2) -> np.ndarray:
