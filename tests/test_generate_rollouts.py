@@ -185,7 +185,7 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
             "controllability.text_repeats=2", "controllability.real_clips=6"]
     results = run(checkpoints, tmp_path / "first", *args, decoder=False)
     rows = results["actions"]["rows"]
-    assert set(rows) == {"ceiling", "model", "floor", "reference"}
+    assert set(rows) == {"ceiling", "tokenized", "model", "floor", "reference"}
     for row in rows.values():
         assert row["speed_mae"]["n"] == 2 and row["speed_mae"]["low"] <= row["speed_mae"]["mean"] <= row["speed_mae"]["high"]
         assert np.isfinite(row["curvature_mae"]["mean"]) and np.shape(row["per_command"]) == (2, 2)
@@ -194,7 +194,7 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
     assert results["actions"]["contrasts"] == {"speed_contrast": ["keep/right", "brake/left"],
                                                "curvature_contrast": ["brake/left", "keep/right"]}
     text = results["text"]
-    assert text["targets"] == ["time_of_day=night"] and set(text["rows"]) == {"ceiling", "model", "floor"}
+    assert text["targets"] == ["time_of_day=night"] and set(text["rows"]) == {"ceiling", "tokenized", "model", "floor"}
     model = text["rows"]["model"]["time_of_day=night"]
     assert model["n"] == 2 and 0 <= model["low"] <= model["mean"] <= model["high"] <= 1
     table = (tmp_path / "first" / "controllability.md").read_text()
@@ -206,6 +206,7 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
     again = run(checkpoints, tmp_path / "second", *args, f"controllability.probes={probes}", decoder=False)
     assert again["actions"]["rows"]["reference"] == rows["reference"]
     assert again["actions"]["rows"]["ceiling"] == rows["ceiling"]
+    assert again["actions"]["rows"]["tokenized"] == rows["tokenized"]  # the tokenizer round trip is deterministic
 
 
 def test_gallery_strips_and_headless_viewer_screenshot(checkpoints, tmp_path: Path) -> None:

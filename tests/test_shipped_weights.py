@@ -131,6 +131,21 @@ def test_reproduce_lists_every_step_of_the_recipe(capsys) -> None:
     assert "mode=export" in commands[-1] and "out_dir=gaia_app/weights/gaia1" in commands[-1]
 
 
+def test_reproduce_until_stops_after_the_step_and_resumes_past_recorded_steps(tmp_path: Path, monkeypatch, capsys) -> None:
+    from gaia_app.tasks import reproduce
+
+    ran = []
+    monkeypatch.setattr(reproduce, "run_step", lambda name, command: ran.append(name) or {"step": name, "wall_s": 1.0})
+    out = tmp_path / "reference"
+    out.mkdir()
+    reproduce.main(["--out", str(out), "--weights", str(tmp_path / "weights"), "--until", "tokenize"])
+    assert ran == ["tokenizer", "tokenize"] and "stopped after tokenize" in capsys.readouterr().out
+    assert [r["step"] for r in json.loads((out / "reproduce.json").read_text())] == ["tokenizer", "tokenize"]
+    assert not (tmp_path / "MANIFEST.md").exists()
+    reproduce.main(["--out", str(out), "--weights", str(tmp_path / "weights"), "--until", "world_model"])
+    assert ran == ["tokenizer", "tokenize", "world_model"]  # the recorded steps are not run again
+
+
 def test_showcase_steers_one_context_four_ways_and_prompts_against_none(shipped: Path, tmp_path: Path) -> None:
     cfg = compose_config("generate", ["mode=showcase", f"weights={shipped}", "context.frames=2", "seconds=0.5",
                                       "extras.print_config=false", *SIZE], tmp_path)

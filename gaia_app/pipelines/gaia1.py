@@ -216,11 +216,15 @@ class Gaia1Pipeline:
             out[:, t] = token_log_perplexity(self.world_model, context, flat[:, t], window).mean(-1).cpu()
         return out
 
+    def tokenizer_frames(self, tokens: torch.Tensor) -> torch.Tensor:
+        """tokens (k, t, h, w) → the tokenizer's frame-by-frame decoding (k, t, 3, H, W) in [-1, 1], on the CPU."""
+        return _renderer(self.tokenizer)(tokens.to(self.device)).cpu()
+
     @torch.no_grad()
     def render(self, tokens: torch.Tensor, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """tokens (k, t, h, w) → frames at the world model's rate (k, t, 3, H, W) and the output video."""
         if self.decoder is None:
-            frames = _renderer(self.tokenizer)(tokens).cpu()
+            frames = self.tokenizer_frames(tokens)
             return frames, frames
         video = self.decoder(tokens, self.upsample, generator)
         out = {0: video.base, 1: video.double, 2: video.quadruple}[self.upsample]

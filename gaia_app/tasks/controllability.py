@@ -9,6 +9,8 @@ one run:
 2. Actions: `controllability.contexts` clips of the world `context.seed` give the contexts; each command of
    `controllability.commands` (speed and curvature presets) is commanded on the future steps.
    ceiling   = the same scenes re-simulated by the synthetic world with the commanded actions;
+   tokenized = the ceiling's frames encoded and decoded by the tokenizer: the best a world model over these
+               tokens can show (a diagnostic; targets use the ceiling);
    model     = mode=action rollouts with those commands;
    floor     = mode=video rollouts (no actions) scored against the same commands;
    reference = the real continuation under the clip's own policy, scored against the same commands: what a
@@ -17,6 +19,7 @@ one run:
    Intervals are over contexts (each context's error averaged over the commands).
 3. Text: each prompt of `controllability.prompts` (attribute → values) generates from text alone.
    ceiling = real held-out clips that have the value (world drawn uniformly over weather and time of day);
+   tokenized = those clips encoded and decoded by the tokenizer (a diagnostic, as above);
    model   = mode=text_only rollouts with the prompt;
    floor   = unconditional rollouts (one shared set) scored against each target.
    A rollout (or real clip) reads a value when most of its frames are probed as that value; the table gives
@@ -179,6 +182,14 @@ def rollout_frames(pipeline: Gaia1Pipeline, context: torch.Tensor | None, frames
     return pipeline.render(sampled, generator)[0]
 
 
+def tokenized(pipeline: Gaia1Pipeline, video: torch.Tensor) -> torch.Tensor:
+    """Real frames (b, t, 3, H, W) → the same frames encoded and decoded by the tokenizer, frame by frame."""
+    if len(video) == 0:
+        return video
+    tokens = torch.stack([pipeline.encode(clip) for clip in video])
+    return pipeline.tokenizer_frames(tokens)
+
+
 def error_row(probe, video: torch.Tensor, commanded: torch.Tensor, start: int, commands: int) -> dict[str, Any]:
     """Of a command-major batch, with 95 % intervals over contexts: the contrast errors (speed: accelerate vs
     brake, curvature: left vs right, gaia_app.eval.controllability.contrast_errors), the MAE against every command,
@@ -205,9 +216,11 @@ def action_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: tor
     pairs = contrast_pairs(commanded[:, t0:-1].unflatten(0, (len(commands), -1)))  # fails before any rollout
     n = c.contexts
     repeat = lambda x: x.repeat(len(commands), *[1] * (x.ndim - 1))  # noqa: E731  (command-major, like `commanded`)
+    ceiling = torch.cat([resimulate(cfg.context.seed, i % n, height, width, commanded[i].numpy(), t0, rate).frames
+                         for i in range(len(commanded))])
     videos = {
-        "ceiling": torch.cat([resimulate(cfg.context.seed, i % n, height, width, commanded[i].numpy(), t0, rate).frames
-                              for i in range(len(commanded))]),
+        "ceiling": ceiling,
+        "tokenized": tokenized(pipeline, ceiling),
         "model": rollout_frames(pipeline, repeat(contexts.frames[:, :t0]), frames, len(commanded), None, commanded, generator),
         "floor": repeat(rollout_frames(pipeline, contexts.frames[:, :t0], frames, n, None, None, generator)),
         "reference": repeat(contexts.frames),
@@ -249,13 +262,15 @@ def text_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: torch
     floor = rollout_frames(pipeline, None, frames, repeats, None, None, generator)
     real = probe_clips(world_clips(cfg.context.seed, c.real_clips, height, width, frames, rate, start=c.contexts,
                                    balanced=True), rate, frames)
-    rows: dict[str, dict[str, Any]] = {"ceiling": {}, "model": {}, "floor": {}}
+    rows: dict[str, dict[str, Any]] = {"ceiling": {}, "tokenized": {}, "model": {}, "floor": {}}
     for attr, value in targets:
         key, index = f"{attr}={value}", ATTRIBUTES[attr].index(value)
         text = pipeline.encode_text_batch([[c.prompt_text[attr][value]] * frames] * repeats)
         model = rollout_frames(pipeline, None, frames, repeats, text, None, generator)
         has_value = real.labels[attr][:, 0] == index
         rows["ceiling"][key] = share_row(probe, real.frames[has_value], attr, index) if has_value.any() else None
+        rows["tokenized"][key] = (share_row(probe, tokenized(pipeline, real.frames[has_value]), attr, index)
+                                  if has_value.any() else None)
         rows["model"][key] = share_row(probe, model, attr, index)
         rows["floor"][key] = share_row(probe, floor, attr, index)
     chance = {f"{attr}={value}": 1.0 / len(ATTRIBUTES[attr]) for attr, value in targets}
@@ -264,9 +279,11 @@ def text_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: torch
             "rows": rows, "checks": checks}
 
 
-ACTION_ROWS = {"ceiling": "ceiling (real, re-simulated)", "model": "model (action-conditioned)",
+ACTION_ROWS = {"ceiling": "ceiling (real, re-simulated)", "tokenized": "ceiling through the tokenizer (diagnostic)",
+               "model": "model (action-conditioned)",
                "floor": "floor (actions dropped)", "reference": "reference (real continuation, commands ignored)"}
-TEXT_ROWS = {"ceiling": "ceiling (real clips)", "model": "model (text-prompted)", "floor": "floor (no text)"}
+TEXT_ROWS = {"ceiling": "ceiling (real clips)", "tokenized": "ceiling through the tokenizer (diagnostic)",
+             "model": "model (text-prompted)", "floor": "floor (no text)"}
 
 
 def markdown(results: dict[str, Any]) -> str:

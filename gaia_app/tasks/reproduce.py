@@ -1,6 +1,7 @@
 """`make reproduce`: the GAIA-1 reference recipe from scratch, ending in the shipped weights (docs/reference.md).
 
     python -m gaia_app.tasks.reproduce [--out outputs/reference] [--weights gaia_app/weights/gaia1] [--dry-run]
+                                       [--until STEP]
 
 Steps, each a train.py / generate.py command that resumes or skips finished work when run again:
   tokenizer        train.py experiment=gaia1/reference/tokenizer
@@ -101,11 +102,22 @@ def manifest(records: list[dict], out: Path, weights: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def run_step(name: str, command: list[str]) -> dict:
+    """Run one step's command from the project root; its record (command, wall time, commit, machine)."""
+    print(f"== {name}: {shown(command)}", flush=True)
+    start = time.perf_counter()
+    subprocess.run(command, cwd=ROOT, check=True)
+    return {"step": name, "command": shown(command), "wall_s": time.perf_counter() - start, "commit": commit(),
+            "machine": machine()}
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("outputs/reference"))
     parser.add_argument("--weights", type=Path, default=Path("gaia_app/weights/gaia1"))
     parser.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
+    parser.add_argument("--until", choices=[name for name, _ in steps(Path("."), Path("."))],
+                        help="stop after this step (no MANIFEST.md); run again without it to go on")
     args = parser.parse_args(argv)
     records_path = args.out / "reproduce.json"
     done = {r["step"]: r for r in json.loads(records_path.read_text())} if records_path.is_file() else {}
@@ -113,16 +125,14 @@ def main(argv: list[str] | None = None) -> None:
     for name, command in steps(args.out, args.weights):
         if args.dry_run:
             print(shown(command))
-            continue
-        if name in done:  # finished in an earlier invocation: keep its record
+        elif name in done:  # finished in an earlier invocation: keep its record
             records.append(done[name])
-            continue
-        print(f"== {name}: {shown(command)}", flush=True)
-        start = time.perf_counter()
-        subprocess.run(command, cwd=ROOT, check=True)
-        records.append({"step": name, "command": shown(command), "wall_s": time.perf_counter() - start,
-                        "commit": commit(), "machine": machine()})
-        atomic_write_text(records_path, json.dumps(records, indent=2))
+        else:
+            records.append(run_step(name, command))
+            atomic_write_text(records_path, json.dumps(records, indent=2))
+        if name == args.until:
+            print(f"stopped after {name} (--until); run again without it to go on")
+            return
     if not args.dry_run:
         atomic_write_text(args.weights.parent / "MANIFEST.md", manifest(records, args.out, args.weights))
         print(f"weights in {args.weights}, MANIFEST.md beside them")

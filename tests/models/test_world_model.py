@@ -43,10 +43,11 @@ def test_perturbing_a_later_image_token_leaves_earlier_logits_unchanged(shortcut
     assert not torch.allclose(after[:, 1, 4:], before[:, 1, 4:])
 
 
-@pytest.mark.parametrize("action_shortcut", [False, True])
-def test_action_of_step_t_conditions_only_later_steps(action_shortcut: bool) -> None:
-    """Eq. 1: z_t sees a_{<t}, not a_t; text c_t is seen by z_t."""
-    net = tiny(action_shortcut=action_shortcut)
+@pytest.mark.parametrize("action_shortcut,action_deltas", [(False, False), (True, False), (True, True)])
+def test_action_of_step_t_conditions_only_later_steps(action_shortcut: bool, action_deltas: bool) -> None:
+    """Eq. 1: z_t sees a_{<t}, not a_t; text c_t is seen by z_t. A change of a_t (action_deltas) also enters
+    step t + 1's action token, which is seen even later."""
+    net = tiny(action_shortcut=action_shortcut, action_deltas=action_deltas)
     tokens, text, actions = inputs()
     base = net(tokens, conditions(net, text, actions))
     moved = actions.clone()
@@ -102,6 +103,26 @@ def test_action_shortcut_adds_the_previous_steps_actions_where_each_image_token_
         if prev is None:
             expected[:, 0] = 0  # the step opening the window has no earlier action
         torch.testing.assert_close(diff, expected)
+
+
+def test_action_deltas_embed_the_change_since_the_previous_step() -> None:
+    """Braking to 10 m/s and cruising at 10 m/s give the same speed token without deltas, different ones with."""
+    cruise = torch.tensor([[[10.0, 0.0], [10.0, 0.0], [10.0, 0.0]]])
+    brake = torch.tensor([[[11.28, 0.0], [10.64, 0.0], [10.0, 0.0]]])  # −4 m/s² at 6.25 Hz
+    plain, net = tiny(), tiny(action_deltas=True)
+    same = [plain.conditioner.embed_actions(a) for a in (cruise, brake)]
+    torch.testing.assert_close(same[0][:, 2], same[1][:, 2])
+    changes = net.conditioner.action_changes(brake)
+    torch.testing.assert_close(changes[0, :, 0], torch.tensor([0.0, -1.6, -1.6]))  # −0.64 m/s per step / 0.4
+    assert changes[0, :, 1].abs().max() == 0
+    embedded = [net.conditioner.embed_actions(a) for a in (cruise, brake)]
+    # the first step has no change: the two differ there by their speed alone
+    offset = torch.stack([(11.28 - 10.0) / 8.0 * net.conditioner.action_weight[0], torch.zeros(32)])
+    torch.testing.assert_close(embedded[0][:, 0], embedded[1][:, 0] - offset)
+    assert not torch.allclose(embedded[0][:, 2], embedded[1][:, 2])
+    assert "conditioner.delta_std" in net.state_dict() and "conditioner.delta_std" not in plain.state_dict()
+    with pytest.raises(ValueError, match="delta_std"):
+        tiny(action_deltas=True, action_norm={"mean": (0.0, 0.0), "std": (1.0, 1.0), "delta_std": (0.0, 1.0)})
 
 
 @pytest.mark.parametrize("shortcut", [False, True])

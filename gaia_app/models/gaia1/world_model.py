@@ -30,6 +30,10 @@ DEFAULT_DROP = {"unconditional": 0.2, "actions": 0.4, "text": 0.4, "both": 0.0}
 # the built-in synthetic world's scales (64 clips: mean 12.0 m/s and −0.002 1/m, std 7.7 m/s and 0.031 1/m);
 # data with other speeds sets model.net.action_norm. The values are buffers, so checkpoints carry them.
 DEFAULT_ACTION_NORM = {"mean": (10.0, 0.0), "std": (8.0, 0.03)}
+# std of the step-to-step change of each action (action_deltas): at 6.25 Hz a brake of −4 m/s² changes the
+# speed by −0.64 m/s per step, 0.08 of the speed's std above, while its change per step is ≈ 1.5 of this one;
+# a command's curvature jumps by ≈ 0.02 1/m at the step it starts
+DEFAULT_DELTA_STD = (0.4, 0.01)
 
 
 @dataclass
@@ -54,17 +58,23 @@ class WorldModelConditioner(nn.Module):
         dim: d. text_dim: e, width of the text encoder's output. text_tokens: m. action_tokens: l.
         drop: probabilities of the training modes {unconditional, actions, text, both} (normalised);
             a dropped stream is replaced by its null embedding, so the sequence layout never changes.
-        action_norm: {"mean": (l,), "std": (l,)} in physical units (DEFAULT_ACTION_NORM when None).
+        action_norm: {"mean": (l,), "std": (l,)} in physical units (DEFAULT_ACTION_NORM when None), and with
+            action_deltas {"delta_std": (l,)}, the std of each action's change per step (DEFAULT_DELTA_STD).
+        action_deltas: each action token also embeds the action's change since the previous step (a_t − a_{t−1},
+            0 at the first step given). Not in the paper: a command changes the speed by a few percent of its range
+            per step, too little for the token of the speed alone to tell braking from cruising.
     """
 
     def __init__(self, dim: int, text_dim: int, text_tokens: int, action_tokens: int = 2,
-                 drop: Mapping[str, float] | None = None, action_norm: Mapping[str, Sequence[float]] | None = None):
+                 drop: Mapping[str, float] | None = None, action_norm: Mapping[str, Sequence[float]] | None = None,
+                 action_deltas: bool = False):
         super().__init__()
-        norm = dict(action_norm or DEFAULT_ACTION_NORM)
-        mean, std = ([float(v) for v in norm.get(key, ())] for key in ("mean", "std"))  # floats: works on meta too
-        if len(mean) != action_tokens or len(std) != action_tokens or min(std, default=0.0) <= 0:
-            raise ValueError(f"action_norm needs 'mean' and 'std' with {action_tokens} values each, std > 0; "
-                             f"got {dict(norm)}")
+        norm = {"delta_std": DEFAULT_DELTA_STD, **dict(action_norm or DEFAULT_ACTION_NORM)}
+        mean, std, delta_std = ([float(v) for v in norm.get(key, ())]  # floats: works on meta too
+                                for key in ("mean", "std", "delta_std"))
+        if any(len(v) != action_tokens or min(v, default=0.0) <= 0 for v in (std, delta_std)) or len(mean) != action_tokens:
+            raise ValueError(f"action_norm needs 'mean', 'std' (and 'delta_std') with {action_tokens} values each, "
+                             f"std > 0; got {dict(norm)}")
         # persistent: the scales the projection was trained with travel with the weights
         self.register_buffer("action_mean", torch.tensor(mean))
         self.register_buffer("action_std", torch.tensor(std))
@@ -73,6 +83,10 @@ class WorldModelConditioner(nn.Module):
         # l independent scalar → d linear layers, one per action channel (speed, curvature)
         self.action_weight = nn.Parameter(torch.randn(action_tokens, dim) * 0.02)
         self.action_bias = nn.Parameter(torch.zeros(action_tokens, dim))
+        self.action_deltas = action_deltas
+        if action_deltas:
+            self.register_buffer("delta_std", torch.tensor(delta_std))
+            self.delta_weight = nn.Parameter(torch.randn(action_tokens, dim) * 0.02)
         self.null_text = nn.Parameter(torch.randn(text_tokens, dim) * 0.02)
         self.null_actions = nn.Parameter(torch.randn(action_tokens, dim) * 0.02)
         rates = {**DEFAULT_DROP, **dict(drop or {})}
@@ -104,8 +118,17 @@ class WorldModelConditioner(nn.Module):
         return (actions - self.action_mean) / self.action_std
 
     def embed_actions(self, actions: torch.Tensor) -> torch.Tensor:
-        """(b, t, l) physical actions → (b, t, l, d): one scalar → d linear map per channel (GAIA-1 §2.1)."""
-        return self.normalise_actions(actions)[..., None] * self.action_weight + self.action_bias
+        """(b, t, l) physical actions → (b, t, l, d): one scalar → d linear map per channel (GAIA-1 §2.1), plus
+        one of the change since the previous step with action_deltas."""
+        tokens = self.normalise_actions(actions)[..., None] * self.action_weight + self.action_bias
+        if self.action_deltas:
+            tokens = tokens + self.action_changes(actions)[..., None] * self.delta_weight
+        return tokens
+
+    def action_changes(self, actions: torch.Tensor) -> torch.Tensor:
+        """(b, t, l) physical actions → (b, t, l) a_t − a_{t−1} in units of delta_std, 0 at the first step."""
+        change = torch.diff(actions, dim=1, prepend=actions[:, :1])
+        return change / self.delta_std
 
     def keep_masks(self, batch: int, force_drop: Mapping[str, bool | torch.Tensor] | None) -> dict[str, torch.Tensor]:
         """(b,) bool per stream: True keeps it. Random modes in training, keep-all in eval, then `force_drop`."""
@@ -153,7 +176,8 @@ class WorldModel(nn.Module):
                  text_dim: int = 384, mlp_ratio: float = 4.0, dropout: float = 0.0,
                  cond_drop: Mapping[str, float] | None = None, checkpointing: bool = False,
                  tie_embeddings: bool = False, previous_frame_shortcut: bool = False,
-                 action_norm: Mapping[str, Sequence[float]] | None = None, action_shortcut: bool = False):
+                 action_norm: Mapping[str, Sequence[float]] | None = None, action_shortcut: bool = False,
+                 action_deltas: bool = False):
         super().__init__()
         if text_tokens < 1:
             raise ValueError("text_tokens must be ≥ 1: the last text token of step t predicts z_{t,1}")
@@ -162,7 +186,8 @@ class WorldModel(nn.Module):
         self.step_len = text_tokens + image_tokens + action_tokens
         self.previous_frame_shortcut = previous_frame_shortcut
         self.action_shortcut = action_shortcut
-        self.conditioner = WorldModelConditioner(dim, text_dim, text_tokens, action_tokens, cond_drop, action_norm)
+        self.conditioner = WorldModelConditioner(dim, text_dim, text_tokens, action_tokens, cond_drop, action_norm,
+                                                 action_deltas)
         self.token_embedding = nn.Embedding(vocab_size, dim)
         self.temporal = nn.Parameter(torch.zeros(frames, dim))  # shared by all tokens of a step
         self.spatial = nn.Parameter(torch.zeros(self.step_len, dim))  # position within a step
