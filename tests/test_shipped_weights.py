@@ -144,6 +144,13 @@ def test_reproduce_until_stops_after_the_step_and_resumes_past_recorded_steps(tm
     assert not (tmp_path / "MANIFEST.md").exists()
     reproduce.main(["--out", str(out), "--weights", str(tmp_path / "weights"), "--until", "world_model"])
     assert ran == ["tokenizer", "tokenize", "world_model"]  # the recorded steps are not run again
+    # a later step recorded earlier (e.g. the probes, which need no model) survives a run that stops before it
+    records = json.loads((out / "reproduce.json").read_text())
+    (out / "reproduce.json").write_text(json.dumps([*records, {"step": "probes", "wall_s": 2.0}]))
+    reproduce.main(["--out", str(out), "--weights", str(tmp_path / "weights"), "--until", "cross_entropy"])
+    assert ran[-1] == "cross_entropy" and "probes" not in ran
+    assert [r["step"] for r in json.loads((out / "reproduce.json").read_text())] == [
+        "tokenizer", "tokenize", "world_model", "cross_entropy", "probes"]
 
 
 def test_showcase_steers_one_context_four_ways_and_prompts_against_none(shipped: Path, tmp_path: Path) -> None:

@@ -123,20 +123,19 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     records_path = args.out / "reproduce.json"
     done = {r["step"]: r for r in json.loads(records_path.read_text())} if records_path.is_file() else {}
-    records = []
-    for name, command in steps(args.out, args.weights):
+    recipe = steps(args.out, args.weights)
+    in_order = lambda: [done[name] for name, _ in recipe if name in done]  # noqa: E731
+    for name, command in recipe:
         if args.dry_run:
             print(shown(command))
-        elif name in done:  # finished in an earlier invocation: keep its record
-            records.append(done[name])
-        else:
-            records.append(run_step(name, command))
-            atomic_write_text(records_path, json.dumps(records, indent=2))
+        elif name not in done:  # a step finished in an earlier invocation keeps its record
+            done[name] = run_step(name, command)
+            atomic_write_text(records_path, json.dumps(in_order(), indent=2))
         if name == args.until:
             print(f"stopped after {name} (--until); run again without it to go on")
             return
     if not args.dry_run:
-        atomic_write_text(args.weights.parent / "MANIFEST.md", manifest(records, args.out, args.weights))
+        atomic_write_text(args.weights.parent / "MANIFEST.md", manifest(in_order(), args.out, args.weights))
         print(f"weights in {args.weights}, MANIFEST.md beside them")
 
 
