@@ -70,7 +70,9 @@ def commit() -> str:
     def git(*args: str) -> str:
         return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     head = git("rev-parse", "--short", "HEAD") or "unknown"
-    return head + ("-dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+    # the weights the export step has just written are its output, not an uncommitted change to the recipe
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)gaia_app/weights")
+    return head + ("-dirty" if changed else "")
 
 
 def machine() -> str:
