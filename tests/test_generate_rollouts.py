@@ -21,6 +21,7 @@ from gaia_app.data.synthetic import SyntheticClipDataset
 from gaia_app.data.synthetic.export import export
 from gaia_app.data.video_io import video_info
 from gaia_app.tasks.generate import generate
+from gaia_app.tasks.rollout import staging
 from gaia_app.tasks.train import train
 from gaia_app.viz.gallery import make_gallery
 from gaia_app.viz.screenshot import ViewerUnavailable, screenshot_recording
@@ -274,3 +275,19 @@ def test_evaluate_scores_a_perfect_future_perfectly_and_a_frozen_one_worse() -> 
     worse = score(["psnr", "ssim", "fvmd"], real, frozen, t0=2)
     assert perfect["ssim"] == pytest.approx(1.0) and perfect["fvmd"] == pytest.approx(0.0, abs=1e-9) and perfect["psnr"] > 90
     assert worse["psnr"] < 30 and worse["ssim"] < 0.9 and worse["fvmd"] > 0.1
+
+
+def test_staging_replaces_the_folders_of_an_earlier_run_and_leaves_them_on_error(tmp_path: Path) -> None:
+    """A second run into the same run dir (make demo twice) replaces its output folders whole."""
+    for text in ("first", "second"):
+        with staging(tmp_path) as stage:
+            (stage / "commands").mkdir()
+            (stage / "commands" / f"{text}.png").write_text(text)
+            (stage / "showcase.md").write_text(text)
+    assert [p.name for p in (tmp_path / "commands").iterdir()] == ["second.png"]
+    assert (tmp_path / "showcase.md").read_text() == "second"
+    with pytest.raises(RuntimeError), staging(tmp_path) as stage:
+        (stage / "commands").mkdir()
+        raise RuntimeError("a failed run")
+    assert [p.name for p in (tmp_path / "commands").iterdir()] == ["second.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["commands", "showcase.md"]  # no staging folder left

@@ -38,13 +38,17 @@ CONTEXT_COLOUR, FUTURE_COLOUR = (40, 200, 80), (230, 60, 40)  # top stripe: cont
 
 @contextmanager
 def staging(run_dir: Path) -> Iterator[Path]:
-    """A hidden folder whose files move into `run_dir` on success; removed, with its files, on error."""
+    """A hidden folder whose files move into `run_dir` on success; removed, with its files, on error. A folder
+    of an earlier run with the same name is replaced whole (os.replace cannot overwrite a non-empty folder)."""
     stage = run_dir / f".rollout-{uuid.uuid4().hex[:8]}"
     stage.mkdir(parents=True)
     try:
         yield stage
-        for path in sorted(stage.iterdir()):
-            os.replace(path, run_dir / path.name)
+        for path in sorted(p for p in stage.iterdir() if not p.name.startswith(".replaced-")):
+            target = run_dir / path.name
+            if target.is_dir() and not target.is_symlink():
+                os.replace(target, stage / f".replaced-{path.name}")  # removed with the stage below
+            os.replace(path, target)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
 
