@@ -187,6 +187,7 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
     results = run(checkpoints, tmp_path / "first", *args, decoder=False)
     rows = results["actions"]["rows"]
     assert set(rows) == {"ceiling", "tokenized", "model", "floor", "reference"}
+    assert rows["tokenized"] != rows["ceiling"]  # the real frames went through the (lossy) tokenizer
     for row in rows.values():
         assert row["speed_mae"]["n"] == 2 and row["speed_mae"]["low"] <= row["speed_mae"]["mean"] <= row["speed_mae"]["high"]
         assert np.isfinite(row["curvature_mae"]["mean"]) and np.shape(row["per_command"]) == (2, 2)
