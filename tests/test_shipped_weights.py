@@ -74,9 +74,9 @@ def corrupt(folder: Path, name: str) -> None:
     (folder / name).write_bytes(b"not a safetensors file")
 
 
-def foreign_target(folder: Path, name: str) -> None:
+def foreign_target(folder: Path, name: str, target: str = "os.system") -> None:
     config = yaml.safe_load((folder / name).read_text())
-    config["nets"]["net"]["_target_"] = "os.system"
+    config["nets"]["net"]["_target_"] = target
     (folder / name).write_text(yaml.safe_dump(config))
 
 
@@ -84,7 +84,10 @@ def foreign_target(folder: Path, name: str) -> None:
     (lambda f: (f / "world_model.safetensors").unlink(), FileNotFoundError,
      r"world_model.safetensors is missing: export it again"),
     (lambda f: corrupt(f, "tokenizer.safetensors"), ValueError, r"tokenizer.safetensors: not a readable safetensors"),
-    (lambda f: foreign_target(f, "tokenizer.yaml"), ValueError, r"nets.net: _target_ 'os.system' is outside gaia_app"),
+    (lambda f: foreign_target(f, "tokenizer.yaml"), ValueError, r"nets.net._target_: _target_ 'os.system' is refused"),
+    # starts like a gaia_app net but resolves to torch.load
+    (lambda f: foreign_target(f, "tokenizer.yaml", "gaia_app.models.gaia1.tokenizer.torch.load"), ValueError,
+     r"is refused.*resolves to torch.serialization.load.*export it again"),
     (lambda f: (f / "tokenizer.yaml").write_text("format: 7\n"), ValueError, r"tokenizer.yaml: expected a weights config"),
 ])
 def test_damaged_weights_are_named_with_how_to_restore_them(shipped: Path, tmp_path: Path, damage, error, match) -> None:
@@ -170,3 +173,41 @@ def test_showcase_steers_one_context_four_ways_and_prompts_against_none(shipped:
     assert {"/actions/speed/brake_straight", "/actions/curvature/keep_left", "/commands/real",
             "/prompts/It_is_night"} <= entities
     assert "| brake / straight |" in (tmp_path / "showcase.md").read_text()
+
+
+def test_a_world_model_trains_on_the_shipped_tokenizer_and_exports_beside_it(checkpoints, shipped: Path,
+                                                                              tmp_path: Path) -> None:  # noqa: F811
+    """mode=tokenize weights= makes a token cache with a weights folder's tokenizer; mode=export weights= then
+    writes a folder with that tokenizer (copied unchanged), the new world model and the folder's probes."""
+    from gaia_app.data.token_cache import find_segments
+
+    out = tmp_path / "tokens"
+    cfg = compose_config("generate", ["mode=tokenize", f"weights={shipped}", "data=synthetic_tiny", "splits=[train]",
+                                      "max_clips=2", *SIZE, f"out_dir={out}", "extras.print_config=false"], tmp_path / "t")
+    assert generate(cfg)["results"]["train"]["written"] == 2
+    tokens = np.load(find_segments(out / "train")[0])
+    assert tokens.shape[1:] == (8, 12)  # the shipped tokenizer's grid at 32×48
+    with pytest.raises(ValueError, match=r"trained on \(32, 48\) frames, but data.height × data.width is \(64, 112\)"):
+        generate(compose_config("generate", ["mode=tokenize", f"weights={shipped}", "data=synthetic_tiny",
+                                             f"out_dir={tmp_path / 'x'}", "extras.print_config=false"], tmp_path / "x"))
+    results = run({"world_model_ckpt": checkpoints["world_model_ckpt"]}, tmp_path / "e", "mode=export",
+                  f"weights={shipped}", f"out_dir={tmp_path / 'mine'}", decoder=False)
+    assert results["tokenizer"].startswith("copied from")
+    for name in ("tokenizer.safetensors", "tokenizer.yaml", "probes/probes.safetensors"):
+        assert (tmp_path / "mine" / name).read_bytes() == (shipped / name).read_bytes()
+    Gaia1Pipeline.from_weights(tmp_path / "mine")
+
+
+def test_generation_from_checkpoints_builds_no_lightning_module(checkpoints, monkeypatch) -> None:  # noqa: F811
+    """Gaia1Pipeline.from_checkpoints builds the nets from each checkpoint's checked config and tensors alone
+    (pipelines/checkpoint_nets.py): the LightningModules, their objectives and loss networks are never built."""
+    from gaia_app.lit.base import GaiaModule
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a LightningModule was built for inference")
+
+    monkeypatch.setattr(GaiaModule, "__init__", refuse)
+    pipeline = Gaia1Pipeline.from_checkpoints(checkpoints["tokenizer_ckpt"], checkpoints["world_model_ckpt"],
+                                              checkpoints["decoder_ckpt"], decoder_steps=2)
+    assert pipeline.decoder is not None and pipeline.image_size == (32, 48)
+    assert not pipeline.world_model.training and not pipeline.decoder.net.training

@@ -38,7 +38,10 @@ def test_tokenize_writes_segments_with_sidecars(ckpt: Path, tmp_path: Path) -> N
     results = run_tokenize(ckpt, tmp_path / "g1", out)
     assert results["train"]["written"] == 8 and results["val"]["written"] == 2
     files = find_segments(out / "train")
-    assert len(files) == 8 and all(f.stem.endswith("_front") for f in files)
+    # one folder per clip, one file per camera, and the cache's manifest
+    assert len(files) == 8 and all(f.stem == "front" and f.parent.parent == out / "train" for f in files)
+    manifest = json.loads((out / "train" / "cache.json").read_text())
+    assert manifest["kind"] == "gaia1_tokens" and manifest["image_size"] == [64, 112] and manifest["format"] == 2
     tokens = np.load(files[0])
     assert tokens.shape == (8, 16, 28) and tokens.dtype == np.int16  # (T, h, w) at D = 4 on 64×112
     stem = files[0].with_suffix("")
@@ -53,11 +56,11 @@ def test_tokenize_writes_segments_with_sidecars(ckpt: Path, tmp_path: Path) -> N
 def test_tokenize_resumes_and_skips_finished_clips(ckpt: Path, tmp_path: Path) -> None:
     out = tmp_path / "cache"
     run_tokenize(ckpt, tmp_path / "g1", out, "max_clips=3", "splits=[train]")
-    first = {f.name: f.stat().st_mtime_ns for f in (out / "train").iterdir()}
+    first = {f: f.stat().st_mtime_ns for f in (out / "train").rglob("*") if f.is_file()}
     results = run_tokenize(ckpt, tmp_path / "g2", out, "splits=[train]")
     assert results["train"] == {"written": 5, "skipped": 3, "out_dir": str(out / "train")}
     # the three finished clips were left untouched
-    assert all((out / "train" / name).stat().st_mtime_ns == t for name, t in first.items())
+    assert all(path.stat().st_mtime_ns == t for path, t in first.items())
 
 
 def test_interrupted_write_leaves_no_partial_file(ckpt: Path, tmp_path: Path, monkeypatch) -> None:
@@ -75,8 +78,8 @@ def test_interrupted_write_leaves_no_partial_file(ckpt: Path, tmp_path: Path, mo
         run_tokenize(ckpt, tmp_path / "g1", out, "splits=[train]")
     monkeypatch.undo()
     # sidecars of the first clip may exist, but no token file and no temp file
-    assert not list((out / "train").glob("*.tmp")) and not list((out / "train").glob(".*"))
-    assert not [p for p in (out / "train").glob("*.npy") if p.name.count(".") == 1]
+    assert not list((out / "train").rglob("*.tmp")) and not list((out / "train").rglob(".*"))
+    assert not [p for p in (out / "train").rglob("*.npy") if p.name.count(".") == 1]
     results = run_tokenize(ckpt, tmp_path / "g2", out, "splits=[train]")
     assert results["train"]["written"] == 8 and results["train"]["skipped"] == 0
 

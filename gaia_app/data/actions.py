@@ -21,6 +21,9 @@ import numpy as np
 from gaia_app.data.clip import ClipError
 
 DEFAULT_MIN_SPEED = 0.5
+# labels outside these are refused, not trained on: |speed| ≤ 100 m/s (reversing is negative), |curvature| ≤ 1 1/m
+# (a 1 m turning radius, tighter than any road vehicle)
+LABEL_RANGES = {"speed": 100.0, "curvature": 1.0}
 """m/s; below it curvature is held rather than computed (see module docstring)."""
 
 
@@ -193,4 +196,9 @@ def actions_from_labels(
     if not np.all(np.isfinite(actions)):
         bad = int(np.flatnonzero(~np.isfinite(actions).all(axis=1))[0])
         raise ClipError(f"{where}: action at frame {bad} is not finite: {actions[bad].tolist()}")
+    for channel, (name, limit) in enumerate(LABEL_RANGES.items()):
+        outside = np.flatnonzero(np.abs(actions[:, channel]) > limit)
+        if len(outside):
+            raise ClipError(f"{where}: {name} {float(actions[outside[0], channel]):g} at frame {int(outside[0])} is outside "
+                            f"[-{limit:g}, {limit:g}] {'m/s' if name == 'speed' else '1/m'} (wrong units?)")
     return actions

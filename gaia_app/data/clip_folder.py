@@ -24,6 +24,8 @@ import torch
 
 from gaia_app.data.actions import ACTION_COLUMNS, actions_from_labels
 from gaia_app.data.clip import AgentBoxes, CameraSpec, Clip, ClipError
+from gaia_app.data.names import check_camera_name
+from gaia_app.data.transforms import resample_indices
 from gaia_app.data.video_io import VideoReadError, count_intact_packets, read_video, video_info
 
 log = logging.getLogger(__name__)
@@ -188,18 +190,20 @@ def _cameras_from_meta(meta: dict[str, Any], path: Path) -> list[CameraSpec] | N
 
 
 def _view_names_on_disk(clip_dir: Path, meta: dict[str, Any], cameras: list[CameraSpec] | None) -> list[str]:
+    """Camera names, each a plain name (data/names.py): they pick `<camera>.mp4` here and name output files later."""
+    meta_path = clip_dir / META_FILE
     if cameras is not None:
-        return [c.name for c in cameras]
+        return [check_camera_name(c.name, f"{meta_path}: cameras[{i}].name") for i, c in enumerate(cameras)]
     names = meta.get(CAMERA_NAMES_KEY)
     if names:
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-            raise ClipError(f"{clip_dir / META_FILE}: field '{CAMERA_NAMES_KEY}' must be a list of names")
-        return names
+            raise ClipError(f"{meta_path}: field '{CAMERA_NAMES_KEY}' must be a list of names")
+        return [check_camera_name(n, f"{meta_path}: {CAMERA_NAMES_KEY}[{i}]") for i, n in enumerate(names)]
     # A plain folder without camera entries: each mp4's stem names its view.
     names = sorted(p.stem for p in clip_dir.glob(f"*{VIDEO_SUFFIX}") if not p.name.startswith("."))
     if not names:
         raise ClipError(f"{clip_dir}: no {VIDEO_SUFFIX} video")
-    return names
+    return [check_camera_name(n, f"{clip_dir / (n + VIDEO_SUFFIX)}") for n in names]
 
 
 def _check_fps(meta: dict[str, Any], meta_path: Path, labels: _Labels, labels_path: Path) -> None:
@@ -226,6 +230,7 @@ def _load_layout(clip_dir: str | Path, cameras: list[str] | None) -> _Layout:
     _check_fps(meta, meta_path, labels, labels_path)
     names = _view_names_on_disk(clip_dir, meta, specs)
     if cameras is not None:
+        cameras = [check_camera_name(c, f"{clip_dir}: data cameras[{i}]") for i, c in enumerate(cameras)]
         missing = [c for c in cameras if c not in names]
         if missing:
             raise ClipError(f"{clip_dir}: cameras {missing} not in {names}")
@@ -272,6 +277,11 @@ def inspect_clip(clip_dir: str | Path, cameras: list[str] | None = None) -> int:
     header, and that each mp4 stores every frame it claims (demuxed, not decoded), so a
     truncated file is caught here. Raises ClipError (VideoReadError for video) naming the file.
     """
+    return _inspect(clip_dir, cameras)[0]
+
+
+def _inspect(clip_dir: str | Path, cameras: list[str] | None) -> tuple[int, np.ndarray]:
+    """`inspect_clip`'s checks → (frame count, (t,) timestamps in seconds)."""
     layout = _load_layout(clip_dir, cameras)
     infos = [video_info(v) for v in layout.videos]
     for video, info in zip(layout.videos, infos):
@@ -280,7 +290,7 @@ def inspect_clip(clip_dir: str | Path, cameras: list[str] | None = None) -> int:
             raise VideoReadError(f"{video}: only {stored} of the {info.num_frames} frames its header claims "
                                  "are stored (truncated file)")
     _check_sizes(layout, [(i.width, i.height) for i in infos])
-    return _check_counts(layout, [i.num_frames for i in infos])
+    return _check_counts(layout, [i.num_frames for i in infos]), layout.labels.timestamps
 
 
 def read_clip(
@@ -340,6 +350,7 @@ class ClipFolderDataset(torch.utils.data.Dataset):
         self.cameras = None if cameras is None else list(cameras)
         self.clip_ids: list[str] = []
         self.num_frames: list[int] = []
+        self.timestamps: list[np.ndarray] = []
         self.skipped: list[tuple[str, str]] = []
         self._scan()
 
@@ -349,7 +360,7 @@ class ClipFolderDataset(torch.utils.data.Dataset):
         # Hidden folders are in-progress atomic writes (ClipFolderWriter) or not clips at all.
         for clip_dir in sorted(p for p in self.root.iterdir() if p.is_dir() and not p.name.startswith(".")):
             try:
-                n = inspect_clip(clip_dir, self.cameras)
+                n, timestamps = _inspect(clip_dir, self.cameras)
             except (ClipError, OSError) as err:
                 self.skipped.append((clip_dir.name, str(err)))
                 continue
@@ -358,6 +369,7 @@ class ClipFolderDataset(torch.utils.data.Dataset):
                 continue
             self.clip_ids.append(clip_dir.name)
             self.num_frames.append(n)
+            self.timestamps.append(timestamps)
         self._report()
 
     def _report(self) -> None:
@@ -374,3 +386,8 @@ class ClipFolderDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, index: int) -> Clip:
         return read_clip(self.root / self.clip_ids[index], self.cameras)
+
+    def steps_at(self, index: int, fps: float | None) -> int:
+        """Frames of clip `index` after resampling to `fps` (None: its own rate), from its labels alone."""
+        timestamps = self.timestamps[index]
+        return len(timestamps) if fps is None else len(resample_indices(timestamps, fps))

@@ -14,6 +14,7 @@ import numpy as np
 
 from gaia_app.data.clip import AgentBoxes, CameraSpec, Clip, ClipError
 from gaia_app.data.clip_folder import CAMERA_NAMES_KEY, LABELS_FILE, META_FILE, RESERVED_LABEL_KEYS, VIDEO_SUFFIX
+from gaia_app.data.names import check_camera_name, check_clip_id
 from gaia_app.data.video_io import write_video
 
 
@@ -95,8 +96,7 @@ class ClipFolderWriter:
     """
 
     def __init__(self, root: str | Path, clip_id: str, *, overwrite: bool = False) -> None:
-        if not clip_id or clip_id.startswith(".") or Path(clip_id).name != clip_id:
-            raise ClipError(f"invalid clip id '{clip_id}': must be a plain folder name")
+        check_clip_id(clip_id, f"clip folder under {root}")
         self.root = Path(root)
         self.target = self.root / clip_id
         self.overwrite = overwrite
@@ -143,11 +143,15 @@ class ClipFolderWriter:
 
     def write_video(self, camera: str, frames, fps: float) -> Path:
         """Encode frames (t, h, w, 3) uint8 RGB, or an iterable of (h, w, 3), as `<camera>.mp4`."""
-        return write_video(self.tmp / f"{camera}{VIDEO_SUFFIX}", frames, fps)
+        return write_video(self.video_path(camera), frames, fps)
 
     def copy_video(self, camera: str, source: str | Path) -> Path:
         """Copy an existing H.264 mp4 unchanged as `<camera>.mp4` (no re-encoding loss)."""
-        return Path(shutil.copyfile(source, self.tmp / f"{camera}{VIDEO_SUFFIX}"))
+        return Path(shutil.copyfile(source, self.video_path(camera)))
+
+    def video_path(self, camera: str) -> Path:
+        """`<camera>.mp4` in the clip being written; the camera name must be plain (data/names.py)."""
+        return self.tmp / f"{check_camera_name(camera, f'clip {self.target.name}')}{VIDEO_SUFFIX}"
 
     def write_labels(self, rows: list[dict[str, Any]]) -> None:
         """Write labels.jsonl, one JSON object per frame."""

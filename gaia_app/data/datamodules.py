@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from typing import Any
@@ -10,10 +11,21 @@ import lightning as L
 import numpy as np
 from torch.utils.data import DataLoader, Dataset, Subset
 
+from gaia_app.data.clip import ClipError
 from gaia_app.data.collate import collate_clips, collate_frames, collate_token_windows
 from gaia_app.data.datasets import ClipsDataset, ClipSource, FramesDataset
 from gaia_app.data.sampling import BalancedSampler, balancing_weights, clip_features
 from gaia_app.data.token_cache import TokenWindows, find_segments, load_segment, split_spans
+
+log = logging.getLogger(__name__)
+
+
+def check_count(value: Any, name: str, minimum: int = 1) -> int:
+    """`value` as an int ≥ `minimum`, else a ValueError naming the setting (e.g. data.batch_size=abc)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name}={value!r}: expected an integer ≥ {minimum}")
+    return int(value)
+
 
 def split_by_clip(source: ClipSource, val_fraction: float, seed: int) -> tuple[Subset, Subset]:
     """Random clip-level split: every frame of a clip lands on one side only."""
@@ -50,7 +62,8 @@ class ClipSourceDataModule(L.LightningDataModule, ABC):
         super().__init__()
         self.source, self.val_source = source, val_source
         self.val_fraction, self.split_seed = val_fraction, split_seed
-        self.batch_size, self.num_workers = batch_size, num_workers
+        self.batch_size = check_count(batch_size, "data.batch_size")
+        self.num_workers = check_count(num_workers, "data.num_workers", minimum=0)
         self.height, self.width, self.resize_mode = height, width, resize_mode
         self.balance = balance
         self.train_set: Dataset | None = None
@@ -117,7 +130,33 @@ class ClipDataModule(ClipSourceDataModule):
 
     def __init__(self, *args, clip_len: int = 8, fps: float | None = None, cameras: Sequence[str] | None = None, **kwargs):
         super().__init__(*args, **kwargs)
-        self.clip_len, self.fps, self.cameras = clip_len, fps, cameras
+        self.clip_len, self.fps, self.cameras = check_count(clip_len, "data.clip_len"), fps, cameras
+        self.skipped_short = 0  # clips dropped at setup for being shorter than one window
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is None:  # clips too short for one window are skipped here, not at their first draw
+            self.source = self.long_enough(self.source, "data.source")
+            if self.val_source is not None:
+                self.val_source = self.long_enough(self.val_source, "data.val_source")
+        super().setup(stage)
+
+    def long_enough(self, source: ClipSource, name: str) -> ClipSource:
+        """`source` without the clips that have fewer than clip_len frames at `fps` (counted in a warning); sources
+        that cannot tell a clip's length without reading it are kept whole."""
+        steps_at = getattr(source, "steps_at", None)
+        if steps_at is None:
+            return source
+        keep = [i for i in range(len(source)) if steps_at(i, self.fps) >= self.clip_len]
+        if len(keep) == len(source):
+            return source
+        rate = f"{self.fps:g} Hz" if self.fps else "their own rate"
+        if not keep:
+            raise ClipError(f"{name}: none of its {len(source)} clips has data.clip_len={self.clip_len} frames at "
+                            f"{rate}; lower data.clip_len or give longer clips")
+        log.warning("%s: skipped %d of %d clips with fewer than data.clip_len=%d frames at %s", name,
+                    len(source) - len(keep), len(source), self.clip_len, rate)
+        self.skipped_short += len(source) - len(keep)
+        return Subset(source, keep)
 
     def wrap(self, source: ClipSource, train: bool) -> Dataset:
         return ClipsDataset(source, self.height, self.width, self.clip_len, self.fps, self.cameras,
@@ -142,7 +181,9 @@ class TokenCacheDataModule(L.LightningDataModule):
                  batch_size: int = 8, num_workers: int = 0):
         super().__init__()
         self.path, self.seq_len, self.stride, self.frame_stride = path, seq_len, stride, frame_stride
-        self.val_fraction, self.batch_size, self.num_workers = val_fraction, batch_size, num_workers
+        self.val_fraction = val_fraction
+        self.batch_size = check_count(batch_size, "data.batch_size")
+        self.num_workers = check_count(num_workers, "data.num_workers", minimum=0)
         self.train_set: TokenWindows | None = None
 
     def setup(self, stage: str | None = None) -> None:

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from gaia_app.data.clip import AgentBoxes, CameraSpec, ClipError
+from gaia_app.data.names import inside
 from gaia_app.utils.run_dir import atomic_save_npy, atomic_write_text
 
 DONE_MARKER = "mean.npy"
@@ -71,12 +72,12 @@ class LatentClip:
 
 def clip_done(root: str | Path, clip_id: str) -> bool:
     """True when clip `clip_id` is fully written (its mean file, written last, exists)."""
-    return (Path(root) / clip_id / DONE_MARKER).is_file()
+    return inside(root, clip_id, DONE_MARKER).is_file()
 
 
 def write_latent_clip(root: str | Path, clip: LatentClip) -> Path:
     """Write a clip's folder, every file atomically, the mean last; returns the folder."""
-    folder = Path(root) / clip.clip_id
+    folder = inside(root, clip.clip_id)
     conditions = {
         "fps": clip.fps,
         "temporal_downsampling": clip.temporal_downsampling,

@@ -2,6 +2,8 @@
 
 A cache is one `.npy` file or a folder of them, each a driving segment of shape (T, n) or
 (T, h, w) (commaVQ ships (1200, 8, 16) int16 per minute; its example file is (1200, 128) int64).
+`generate.py mode=tokenize` writes one folder per clip, `<root>/<clip_id>/<camera>.npy`, and a manifest
+`<root>/cache.json` (gaia_app/data/cache_manifest.py); flat folders of `.npy` files are read too.
 Optional sidecars beside a segment `<stem>.npy`, written by `generate.py mode=tokenize`:
     <stem>.actions.npy      (T, 2) float32 speed (m/s) and curvature (1/m)
     <stem>.timestamps.npy   (T,) float64 seconds of each step
@@ -22,6 +24,7 @@ import torch
 from torch.utils.data import Dataset
 
 from gaia_app.data.clip import ClipError
+from gaia_app.data.names import inside
 from gaia_app.utils.run_dir import atomic_save_npy, atomic_write_text
 
 SIDECARS = (".actions.npy", ".timestamps.npy", ".text.json")
@@ -69,9 +72,14 @@ def _load_sidecar(path: Path, dtype: type, shape: tuple[int, ...], frame_stride:
     return array
 
 
+def segment_path(root: str | Path, name: str) -> Path:
+    """The token file of segment `name` (`<clip_id>/<camera>` or a plain stem), which must stay under `root`."""
+    return inside(root, *f"{name}.npy".split("/"))
+
+
 def segment_done(root: str | Path, name: str) -> bool:
     """True when the token file of segment `name` exists (it is written last, see `write_segment`)."""
-    return (Path(root) / f"{name}.npy").is_file()
+    return segment_path(root, name).is_file()
 
 
 def write_segment(root: str | Path, segment: TokenSegment) -> Path:
@@ -79,7 +87,8 @@ def write_segment(root: str | Path, segment: TokenSegment) -> Path:
 
     segment.tokens: (T, h, w) or (T, n) integer; stored as int16 when the codebook fits (like commaVQ).
     """
-    path = Path(root) / f"{segment.name}.npy"
+    path = segment_path(root, segment.name)
+    path.parent.mkdir(parents=True, exist_ok=True)
     t = len(segment.tokens)
     if segment.actions is not None:
         atomic_save_npy(sidecar(path, ".actions.npy"), np.asarray(segment.actions, np.float32).reshape(t, 2))
@@ -94,11 +103,13 @@ def write_segment(root: str | Path, segment: TokenSegment) -> Path:
 
 
 def find_segments(path: str | Path) -> list[Path]:
-    """The token files of a cache: the file itself, or every `*.npy` in a folder except sidecars."""
+    """The token files of a cache: the file itself, or every `*.npy` in a folder and in its clip folders, except
+    sidecars."""
     root = Path(path)
     if root.is_file():
         return [root]
-    files = sorted(p for p in root.glob("*.npy") if not p.name.endswith(SIDECARS))
+    found = [*root.glob("*.npy"), *root.glob("*/*.npy")]
+    files = sorted(p for p in found if not p.name.endswith(SIDECARS) and not p.parent.name.startswith("."))
     if not files:
         raise ClipError(f"token cache '{root}': no .npy token files found")
     return files

@@ -27,6 +27,7 @@ from torch import nn
 from gaia_app.encoders import distillation_loss
 from gaia_app.eval.metrics import psnr, ssim
 from gaia_app.lit.adversarial import AdversarialModule
+from gaia_app.lit.checkpoint import read_checkpoint
 from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer, VideoTokenizerOutput, kl_bits_per_pixel
 
 STAGES = ("reconstruction", "gan")
@@ -243,7 +244,7 @@ def load_tokenizer_weights(net: VideoTokenizer, path: str | Path) -> None:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"model.init_from='{path}' does not exist: give a stage-1 tokenizer checkpoint")
-    state = torch.load(path, map_location="cpu", weights_only=False).get("state_dict", {})
+    state = read_checkpoint(path).get("state_dict", {})
     weights = {k.removeprefix("net."): v for k, v in state.items() if k.startswith("net.")}
     if not weights:
         raise KeyError(f"model.init_from='{path}' holds no 'net.*' weights: is it a VideoTokenizerModule checkpoint?")

@@ -23,8 +23,8 @@ from einops import rearrange
 
 from gaia_app.diffusion.ar_sampling import AutoregressiveSampler
 from gaia_app.diffusion.guidance import ClassifierFreeGuidance
+from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule
 from gaia_app.eval.token_perplexity import fit_window, token_log_perplexity
-from gaia_app.lit.checkpoint import load_module
 from gaia_app.models.gaia1.tokenizer import ImageTokenizer
 from gaia_app.models.gaia1.world_model import STREAMS, Conditions, WorldModel
 from gaia_app.pipelines.gaia1_video_decoder import VideoDecodingPipeline
@@ -69,14 +69,6 @@ class Gaia1Rollout:
     context_frames: int
 
 
-def load_component(path: str | Path, expected: type, role: str, device: str | torch.device):
-    """The LightningModule of checkpoint `path`, which must hold a `expected` (else a TypeError naming both)."""
-    module = load_module(path, map_location=device)
-    if not isinstance(module, expected):
-        raise TypeError(f"{role}={path} holds a {type(module).__name__} checkpoint, expected a {expected.__name__}")
-    return module.to(device)
-
-
 class Gaia1Pipeline:
     """Tokenizer + world model + (optional) video decoder: rollouts from context frames and conditions.
 
@@ -103,29 +95,26 @@ class Gaia1Pipeline:
     def from_checkpoints(cls, tokenizer: str | Path, world_model: str | Path, decoder: str | Path | None = None,
                          image_size: tuple[int, int] | None = None, device: str = "cpu",
                          decoder_steps: int | None = None, **kwargs) -> Gaia1Pipeline:
-        """Load the three components; `image_size` defaults to the decoder's (required without one).
+        """Load the three components' nets (pipelines/checkpoint_nets.py: weights-only, checked configs, no
+        LightningModule); `image_size` defaults to the decoder's (required without one).
 
         decoder_steps: steps of the decoder run's own sampler (DDIM, §5.2: 50), None for its default.
         kwargs: the constructor's sampler, guidance, upsample and rate.
         """
-        from gaia_app.lit.gaia1_tokenizer import ImageTokenizerModule
-        from gaia_app.lit.gaia1_video_decoder import VideoDecoderModule
-        from gaia_app.lit.gaia1_world_model import WorldModelModule
+        from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
 
-        tok = load_component(tokenizer, ImageTokenizerModule, "tokenizer_ckpt", device).tokenizer
-        wm = load_component(world_model, WorldModelModule, "world_model_ckpt", device)
+        tok = checkpoint_nets(tokenizer, "tokenizer", "tokenizer_ckpt", device)[0]["net"]
+        wm = checkpoint_nets(world_model, "world_model", "world_model_ckpt", device)[0]
         video = None
         if decoder is not None:
-            module = load_component(decoder, VideoDecoderModule, "decoder_ckpt", device)
-            net = module.ema_decoder.eval()
+            nets, config = checkpoint_nets(decoder, "video_decoder", "decoder_ckpt", device)
+            net = nets["net"]
             image_size = image_size or tuple(net.image_size)
-            render = _renderer(tok) if net.render_tokens else None
-            sampler = module.sampler(decoder_steps)
-            video = VideoDecodingPipeline(net, module.schedule, sampler, frames=module.frames,
-                                          context=module.context_frames, progress=True, render_tokens=render)
+            video = VideoDecodingPipeline(net, *decoder_sampling(config, decoder_steps), progress=True,
+                                          render_tokens=_renderer(tok) if net.render_tokens else None)
         if image_size is None:
             raise ValueError("image_size=(H, W) is needed when no decoder checkpoint gives it")
-        return cls(tok.eval(), wm.world_model.eval(), image_size, wm.text_encoder, decoder=video, **kwargs)
+        return cls(tok, wm["net"], image_size, wm.get("text_encoder"), decoder=video, **kwargs)
 
     @classmethod
     def from_weights(cls, folder: str | Path, device: str = "cpu", **kwargs) -> Gaia1Pipeline:
@@ -242,6 +231,18 @@ class Gaia1Pipeline:
         log_ppl = self.frame_log_perplexity(tokens, cond, t0)
         base, video = self.render(tokens, generator)
         return Gaia1Rollout(tokens.cpu(), base, video, self.fps, log_ppl, t0)
+
+
+def decoder_sampling(config: dict, steps: int | None) -> tuple[CosineNoiseSchedule, Callable, int, int]:
+    """(noise schedule, sampler, frames T', context frames) of a video decoder's stored config (model.schedule,
+    model.sampler with `steps` if given, model.frames, model.context_frames), as VideoDecoderModule builds them."""
+    from hydra.utils import instantiate
+
+    schedule = instantiate(config["schedule"])() if config.get("schedule") else CosineNoiseSchedule()
+    if not config.get("sampler"):
+        raise ValueError("the video decoder checkpoint's model config has no sampler")
+    sampler = instantiate(config["sampler"])(schedule, **({"steps": steps} if steps else {}))
+    return schedule, sampler, int(config.get("frames", 7)), int(config.get("context_frames", 2))
 
 
 def _renderer(tokenizer: ImageTokenizer) -> Callable[[torch.Tensor], torch.Tensor]:

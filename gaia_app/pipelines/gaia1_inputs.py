@@ -40,6 +40,20 @@ CURVATURE_PRESETS = {"straight": 0.0, "left": 0.02, "right": -0.02, "strong_left
 SPEED_PRESETS = {"keep": 0.0, "accelerate": 2.0, "brake": -4.0}
 MAX_SPEED = 30.0
 DEFAULT_SPEED = 8.0  # m/s when there is no context speed to start from
+# what a commanded number may be: 0–70 m/s (252 km/h), |curvature| ≤ 0.5 1/m (a 2 m turning radius)
+COMMAND_RANGES = {"speed": (0.0, 70.0), "curvature": (-0.5, 0.5)}
+
+
+def future_frames(seconds: Any, rate: float, at_least: int = 1) -> int:
+    """Generated steps for `seconds` of future at `rate` Hz (at least `at_least`); a clear error for seconds that are
+    not a positive, finite number."""
+    try:
+        value = float(seconds)
+    except (TypeError, ValueError):
+        value = math.nan
+    if not math.isfinite(value) or value <= 0 or isinstance(seconds, bool):
+        raise ValueError(f"seconds={seconds!r}: expected a positive number of seconds of future to generate")
+    return max(at_least, math.ceil(value * rate))
 
 
 @dataclass
@@ -104,10 +118,17 @@ def command_series(value: Any, name: str, presets: dict[str, float], frames: int
         if value not in presets:
             raise ValueError(f"{name}={value!r}: expected one of {sorted(presets)}, a number or a list of {frames}")
         return value
-    values = np.atleast_1d(np.asarray(value, dtype=np.float64))
-    if values.ndim != 1 or len(values) not in (1, frames) or not np.isfinite(values).all():
+    try:
+        values = np.atleast_1d(np.asarray(value, dtype=np.float64))
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}={value!r}: expected one of {sorted(presets)}, a number or a list of {frames}") from None
+    if values.ndim != 1 or len(values) not in (1, frames):
         raise ValueError(f"{name}: {len(values)} values for {frames} future steps; give one per step, one number, "
                          f"or a preset of {sorted(presets)}")
+    low, high = COMMAND_RANGES[name]
+    if not (np.isfinite(values).all() and (values >= low).all() and (values <= high).all()):
+        raise ValueError(f"{name}={value!r}: every commanded value must be a finite number in [{low:g}, {high:g}] "
+                         f"{'m/s' if name == 'speed' else '1/m'}")
     return np.broadcast_to(values, (frames,)).copy()
 
 

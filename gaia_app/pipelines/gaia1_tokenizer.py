@@ -10,6 +10,7 @@ from einops import rearrange
 
 from gaia_app.data.clip import Clip
 from gaia_app.data.datasets import fit_to_resolution
+from gaia_app.data.names import check_camera_name
 from gaia_app.data.token_cache import TokenSegment
 from gaia_app.data.transforms import resample_clip, to_float
 from gaia_app.eval.metrics import psnr, ssim
@@ -55,15 +56,17 @@ class TokenizerReconstructionPipeline:
 
 
 def camera_names(clip: Clip) -> list[str]:
-    """One name per view: the camera specs', else meta["camera_names"], else view0, view1, …"""
-    if clip.cameras:
-        return [c.name for c in clip.cameras]
-    return list(clip.meta.get("camera_names", [f"view{v}" for v in range(clip.num_views)]))
+    """One plain name per view (gaia_app/data/names.py): the camera specs', else meta["camera_names"], else view0,
+    view1, … They become parts of output file names, so each is checked."""
+    names = [c.name for c in clip.cameras] if clip.cameras else \
+        list(clip.meta.get("camera_names", [f"view{v}" for v in range(clip.num_views)]))
+    return [check_camera_name(name, f"clip '{clip.clip_id}'") for name in names]
 
 
 def segment_names(clip: Clip) -> list[str]:
-    """Token-cache segment stems of a clip, one per camera: `<clip_id>_<camera>`."""
-    return [f"{clip.clip_id}_{camera}" for camera in camera_names(clip)]
+    """Token-cache segment names of a clip, one per camera: `<clip_id>/<camera>` (a folder per clip, so no two
+    clips' cameras can share a file name)."""
+    return [f"{clip.clip_id}/{camera}" for camera in camera_names(clip)]
 
 
 @dataclass

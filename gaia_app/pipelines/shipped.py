@@ -9,7 +9,7 @@ no discriminator); `<component>.yaml` holds how to build them:
     nets: {net: {_target_: gaia_app.models..., _partial_: true, ...}, text_encoder: {...}}
     info: {image_size: [64, 112], rate: 6.25, ...}
 
-Tensors are named `<net>.<parameter>`. Nothing is unpickled, and a YAML may only build classes of gaia_app, so a
+Tensors are named `<net>.<parameter>`. Nothing is unpickled, and a YAML may only build nets and encoders of gaia_app (gaia_app/utils/targets.py), so a
 weights folder from elsewhere cannot run code on load. `export_component` writes both files from a training
 checkpoint of this project; `load_nets` reads them back.
 """
@@ -27,11 +27,13 @@ from omegaconf import OmegaConf
 from torch import nn
 
 from gaia_app.utils.run_dir import atomic_write_bytes, atomic_write_text
+from gaia_app.utils.targets import UnsafeTargetError, check_targets
 
 WEIGHTS_ROOT = Path(__file__).resolve().parents[1] / "weights"
 FORMAT = 1
 STORAGE_TYPES = {"float16": torch.float16, "float32": torch.float32}
-TARGET_PREFIX = "gaia_app."
+# shipped weights hold nets only: their YAML may build nets and text encoders, nothing else
+SHIPPED_TARGETS = ("gaia_app.models.", "gaia_app.nn.", "gaia_app.encoders.")
 
 
 def shipped_folder(name: str | Path) -> Path:
@@ -109,22 +111,11 @@ def read_config(path: Path) -> dict[str, Any]:
         raise ValueError(f"{path}: expected a weights config of format {FORMAT} with a 'nets' mapping; "
                          f"{restore_hint(path)}")
     for name, net in config["nets"].items():
-        check_targets(net, f"{path}: nets.{name}")
+        try:
+            check_targets(net, f"{path}: nets.{name}", SHIPPED_TARGETS)
+        except UnsafeTargetError as error:
+            raise ValueError(f"{error}; {restore_hint(path)}") from None
     return config
-
-
-def check_targets(node: Any, where: str) -> None:
-    """Every `_target_` in the config tree must name something inside gaia_app."""
-    if isinstance(node, dict):
-        target = node.get("_target_")
-        if target is not None and not str(target).startswith(TARGET_PREFIX):
-            raise ValueError(f"{where}: _target_ '{target}' is outside gaia_app; shipped weights build only "
-                             "gaia_app nets")
-        for key, value in node.items():
-            check_targets(value, f"{where}.{key}")
-    elif isinstance(node, list):
-        for i, value in enumerate(node):
-            check_targets(value, f"{where}[{i}]")
 
 
 def read_tensors(path: Path) -> dict[str, torch.Tensor]:

@@ -59,7 +59,7 @@ from gaia_app.eval.controllability import (
 from gaia_app.eval.intervals import mean_interval, share_interval
 from gaia_app.models.probes import ATTRIBUTES
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
-from gaia_app.pipelines.gaia1_inputs import future_actions
+from gaia_app.pipelines.gaia1_inputs import future_actions, future_frames
 from gaia_app.pipelines.shipped import shipped_folder
 from gaia_app.tasks.rollout import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
@@ -208,7 +208,7 @@ def error_row(probe, video: torch.Tensor, commanded: torch.Tensor, start: int, c
 def action_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: torch.Generator) -> dict[str, Any]:
     """Ceiling / model / floor / reference action errors over every context and command, with targets."""
     c, rate, (height, width) = cfg.controllability, pipeline.rate, pipeline.image_size
-    t0, frames = cfg.context.frames, max(2, math.ceil(cfg.seconds * rate))
+    t0, frames = cfg.context.frames, future_frames(cfg.seconds, rate, at_least=2)
     total = t0 + frames
     contexts = probe_clips(world_clips(cfg.context.seed, c.contexts, height, width, total, rate), rate, total)
     commands = [tuple(cmd) for cmd in c.commands]
@@ -256,7 +256,7 @@ def share_row(probe, video: torch.Tensor, attr: str, index: int) -> dict[str, An
 def text_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: torch.Generator) -> dict[str, Any]:
     """Ceiling / model / floor share of rollouts reading each prompted attribute value."""
     c, rate, (height, width) = cfg.controllability, pipeline.rate, pipeline.image_size
-    frames = max(1, math.ceil(cfg.seconds * rate))
+    frames = future_frames(cfg.seconds, rate)
     targets = [(attr, value) for attr, values in c.prompts.items() for value in values]
     repeats = c.text_repeats
     floor = rollout_frames(pipeline, None, frames, repeats, None, None, generator)
@@ -336,7 +336,7 @@ def cell_accuracy(row: dict[str, float] | None) -> str:
 def controllability(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Run the protocol of the module docstring; returns the results (also written to the run dir)."""
     pipeline = load_pipeline(cfg)
-    t = cfg.context.frames + max(2, math.ceil(cfg.seconds * pipeline.rate))
+    t = cfg.context.frames + future_frames(cfg.seconds, pipeline.rate, at_least=2)
     dynamics, scene, probe_info = probes_for(cfg, pipeline, t, Path(run_dir))
     generator = torch.Generator(device=pipeline.device).manual_seed(int(cfg.seed))
     results = {"probes": probe_info, "actions": action_table(cfg, pipeline, dynamics, generator),

@@ -21,7 +21,6 @@ into the run dir.
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -37,6 +36,7 @@ from gaia_app.eval.fvmd import FVMD
 from gaia_app.eval.metrics import psnr, ssim
 from gaia_app.tasks.controllability import rollout_frames, world_samples
 from gaia_app.models.probes import AgentSegmentationProbe
+from gaia_app.pipelines.gaia1_inputs import future_frames
 from gaia_app.tasks.rollout import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 
@@ -128,7 +128,7 @@ def evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     check_settings(cfg)
     pipeline = load_pipeline(cfg)
     rate, (height, width), n = pipeline.rate, pipeline.image_size, cfg.evaluate.contexts
-    t0, frames = cfg.context.frames, max(2, math.ceil(cfg.seconds * rate))
+    t0, frames = cfg.context.frames, future_frames(cfg.seconds, rate, at_least=2)
     samples = world_samples(cfg.context.seed, n, height, width, t0 + frames, rate)
     real = probe_clips([s.clip for s in samples], rate, t0 + frames).frames
     agents, extra = None, {}

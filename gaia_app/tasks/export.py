@@ -6,6 +6,11 @@
 writes tokenizer.{safetensors,yaml}, world_model.{safetensors,yaml} and probes/ (the controllability probes the
 weights were measured with, so `weights=` runs never retrain them). Only the nets inference needs are kept: the
 tokenizer without its discriminator, the world model with its text encoder.
+
+    python generate.py mode=export weights=gaia1 world_model_ckpt=<world model last.ckpt> out_dir=my_weights
+
+exports a world model trained on the tokens of a weights folder's tokenizer (`mode=tokenize weights=gaia1`): the
+tokenizer files (and the probes, unless controllability.probes is given) are copied from that folder unchanged.
 """
 
 from __future__ import annotations
@@ -18,30 +23,40 @@ from omegaconf import DictConfig
 
 from gaia_app.eval.controllability import PROBE_INFO, PROBE_WEIGHTS, load_probes
 from gaia_app.lit.checkpoint import read_checkpoint
-from gaia_app.pipelines.shipped import export_component
+from gaia_app.pipelines.shipped import export_component, read_config, shipped_folder, weight_files
 
 
 def export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Export `cfg.tokenizer_ckpt`, `cfg.world_model_ckpt` and `cfg.controllability.probes` into `cfg.out_dir`."""
+    source = shipped_folder(cfg.weights) if cfg.get("weights") else None
+    if source is not None and cfg.get("tokenizer_ckpt"):
+        raise ValueError(f"mode=export: weights={cfg.weights} gives the tokenizer; drop tokenizer_ckpt")
     for key in ("tokenizer_ckpt", "world_model_ckpt"):
-        if not cfg.get(key):
-            raise ValueError(f"mode=export needs {key}=<checkpoint>")
-    image_size = [int(cfg.data.height), int(cfg.data.width)]
+        if not cfg.get(key) and not (key == "tokenizer_ckpt" and source is not None):
+            raise ValueError(f"mode=export needs {key}=<checkpoint>"
+                             + (" (or weights=<folder> for the tokenizer)" if key == "tokenizer_ckpt" else ""))
     out = Path(cfg.out_dir)
-    results = {"out_dir": str(out)}
-    tokenizer = read_checkpoint(cfg.tokenizer_ckpt)
-    results["tokenizer"] = export_component(tokenizer, out, "tokenizer", ["net"],
-                                            {"image_size": image_size},
-                                            cfg.export_dtype)
+    results: dict[str, Any] = {"out_dir": str(out)}
+    if source is None:
+        image_size = [int(cfg.data.height), int(cfg.data.width)]
+        results["tokenizer"] = export_component(read_checkpoint(cfg.tokenizer_ckpt), out, "tokenizer", ["net"],
+                                                {"image_size": image_size}, cfg.export_dtype)
+    else:
+        image_size = [int(v) for v in read_config(weight_files(source, "tokenizer")[1])["info"]["image_size"]]
+        out.mkdir(parents=True, exist_ok=True)
+        for path in weight_files(source, "tokenizer"):
+            shutil.copyfile(path, out / path.name)
+        results["tokenizer"] = f"copied from {source}"
     world_model = read_checkpoint(cfg.world_model_ckpt)
     nets = ["net"] + (["text_encoder"] if world_model["hyper_parameters"]["model_cfg"].get("text_encoder") else [])
     results["world_model"] = export_component(world_model, out, "world_model", nets,
                                               {"rate": float(cfg.rate)},
                                               cfg.export_dtype)
-    if cfg.controllability.probes:
-        load_probes(cfg.controllability.probes, tuple(image_size), float(cfg.rate))  # refuses probes of another size
+    probes = cfg.controllability.probes or (source / "probes" if source is not None else None)
+    if probes:
+        load_probes(probes, tuple(image_size), float(cfg.rate))  # refuses probes of another size
         (out / "probes").mkdir(parents=True, exist_ok=True)
         for name in (PROBE_WEIGHTS, PROBE_INFO):
-            shutil.copyfile(Path(cfg.controllability.probes) / name, out / "probes" / name)
+            shutil.copyfile(Path(probes) / name, out / "probes" / name)
         results["probes"] = str(out / "probes")
     return results

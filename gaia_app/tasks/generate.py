@@ -25,8 +25,10 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 from tqdm import tqdm
 
+from gaia_app.data.cache_manifest import cache_manifest, prepare_cache, weights_sha256
 from gaia_app.data.datasets import fit_to_resolution
 from gaia_app.data.latent_cache import clip_done, write_latent_clip
+from gaia_app.data.names import inside
 from gaia_app.data.token_cache import segment_done, write_segment
 from gaia_app.data.transforms import to_float, to_uint8
 from gaia_app.data.video_io import write_video
@@ -35,7 +37,9 @@ from gaia_app.lit.gaia1_tokenizer import ImageTokenizerModule
 from gaia_app.lit.gaia2_video_tokenizer import VideoTokenizerModule
 from gaia_app.pipelines.gaia1_tokenizer import (ReconstructionOutput, TokenCachePipeline, TokenizerReconstructionPipeline,
                                                 camera_names, segment_names)
+from gaia_app.models.gaia1.tokenizer import ImageTokenizer
 from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
+from gaia_app.pipelines.shipped import load_nets, shipped_folder
 from gaia_app.tasks.controllability import controllability
 from gaia_app.tasks.evaluate import evaluate
 from gaia_app.tasks.export import export
@@ -81,9 +85,10 @@ def reconstruct(cfg: DictConfig, module: ImageTokenizerModule, run_dir: Path) ->
         video = to_float(torch.from_numpy(clip.frames))
         out = pipeline(video)
         for v, camera in enumerate(camera_names(clip)):
-            write_video(run_dir / f"{clip.clip_id}_{camera}.mp4", side_by_side(video[v], out.reconstruction[v]), clip.fps or 25.0)
+            write_video(inside(run_dir, f"{clip.clip_id}_{camera}.mp4"), side_by_side(video[v], out.reconstruction[v]),
+                        clip.fps or 25.0)
             log_reconstruction(rec, clip.clip_id, camera, video, out, v, codebook)
-        np.save(run_dir / f"{clip.clip_id}_tokens.npy", out.tokens.numpy())
+        np.save(inside(run_dir, f"{clip.clip_id}_tokens.npy"), out.tokens.numpy())
         results[clip.clip_id] = {"psnr": float(out.psnr.mean()), "ssim": float(out.ssim.mean())}
     rec.flush()
     rec.disconnect()
@@ -106,28 +111,32 @@ def cache_split(clips: Any, out_dir: Path, max_clips: int | None, desc: str, don
     return counts
 
 
-def cache_splits(cfg: DictConfig, name: str, make_writers: Callable[[Any, Path], tuple[Callable, Callable]]) -> dict[str, Any]:
+def cache_splits(cfg: DictConfig, name: str, make_writers: Callable[[Any, Path], tuple[Callable, Callable]],
+                 manifest: Callable[[Any], dict[str, Any]]) -> dict[str, Any]:
     """Run `cache_split` over `cfg.splits` of `cfg.data` into `cfg.out_dir/<split>/`; make_writers(datamodule,
-    out_dir) → (done, write)."""
+    out_dir) → (done, write). Each split folder must hold no cache, or one with the same manifest(datamodule)
+    (data/cache_manifest.py; `cfg.overwrite` empties a folder that holds another)."""
     datamodule = instantiate(cfg.data)
     datamodule.setup("fit")
+    made = manifest(datamodule)
     splits = {"train": datamodule.train_clips, "val": datamodule.val_clips}
     results: dict[str, Any] = {}
     for split in cfg.splits:
         if split not in splits:
             raise ValueError(f"splits: unknown split '{split}', expected some of {sorted(splits)}")
         out_dir = Path(cfg.out_dir) / split
+        prepare_cache(out_dir, made, overwrite=bool(cfg.overwrite))
         done, write = make_writers(datamodule, out_dir)
         results[split] = {**cache_split(splits[split], out_dir, cfg.max_clips, f"{name} {split}", done, write),
                           "out_dir": str(out_dir)}
     return results
 
 
-def tokenize(cfg: DictConfig, module: ImageTokenizerModule, run_dir: Path) -> dict[str, Any]:
+def tokenize(cfg: DictConfig, tokenizer: ImageTokenizer, run_dir: Path) -> dict[str, Any]:
     """Encode every clip of `cfg.splits` once into `cfg.out_dir/<split>/` (token_cache.py layout),
     with timestamps, actions and captions beside the tokens (GAIA-1 §2.2: the world model trains on tokens)."""
     def writers(datamodule: Any, out_dir: Path) -> tuple[Callable, Callable]:
-        pipeline = TokenCachePipeline(module.tokenizer, datamodule.height, datamodule.width, datamodule.resize_mode,
+        pipeline = TokenCachePipeline(tokenizer, datamodule.height, datamodule.width, datamodule.resize_mode,
                                       cfg.fps, cfg.batch_size)
 
         def write(clip: Any) -> None:
@@ -136,7 +145,12 @@ def tokenize(cfg: DictConfig, module: ImageTokenizerModule, run_dir: Path) -> di
 
         return (lambda clip: all(segment_done(out_dir, name) for name in segment_names(clip))), write
 
-    return cache_splits(cfg, "tokenize", writers)
+    def manifest(datamodule: Any) -> dict[str, Any]:
+        return cache_manifest("gaia1_tokens", tokenizer_sha256=weights_sha256(tokenizer),
+                              codebook_size=tokenizer.codebook_size, fps=cfg.fps,
+                              image_size=[datamodule.height, datamodule.width], resize_mode=datamodule.resize_mode)
+
+    return cache_splits(cfg, "tokenize", writers, manifest)
 
 
 def encode(cfg: DictConfig, module: VideoTokenizerModule, run_dir: Path) -> dict[str, Any]:
@@ -147,7 +161,11 @@ def encode(cfg: DictConfig, module: VideoTokenizerModule, run_dir: Path) -> dict
                                           datamodule.resize_mode, cfg.fps)
         return (lambda clip: clip_done(out_dir, clip.clip_id)), (lambda clip: write_latent_clip(out_dir, pipeline.encode(clip)))
 
-    return cache_splits(cfg, "encode", writers)
+    def manifest(datamodule: Any) -> dict[str, Any]:
+        return cache_manifest("gaia2_latents", tokenizer_sha256=weights_sha256(module.tokenizer), fps=cfg.fps,
+                              image_size=[datamodule.height, datamodule.width], resize_mode=datamodule.resize_mode)
+
+    return cache_splits(cfg, "encode", writers, manifest)
 
 
 MODES = {"reconstruct": (ImageTokenizerModule, reconstruct), "tokenize": (ImageTokenizerModule, tokenize),
@@ -155,16 +173,31 @@ MODES = {"reconstruct": (ImageTokenizerModule, reconstruct), "tokenize": (ImageT
 
 
 def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """The single-checkpoint modes of `MODES` on `cfg.ckpt`."""
+    """The single-checkpoint modes of `MODES` on `cfg.ckpt` (mode=tokenize also on the tokenizer of `cfg.weights`)."""
     if cfg.mode not in MODES:
         raise ValueError(f"mode={cfg.mode}: expected one of {sorted(MODES) + list(ROLLOUT_MODES) + ['controllability', 'evaluate', 'export', 'showcase']}")
+    if cfg.mode == "tokenize" and cfg.get("weights"):
+        return tokenize(cfg, shipped_tokenizer(cfg), run_dir)
     if not cfg.ckpt:
         raise ValueError(f"mode={cfg.mode} needs ckpt=<checkpoint of a trained tokenizer>")
     module_type, run = MODES[cfg.mode]
     module = load_module(cfg.ckpt, map_location=cfg.device)
     if not isinstance(module, module_type):
         raise TypeError(f"mode={cfg.mode} needs a {module_type.__name__} checkpoint; {cfg.ckpt} holds {type(module).__name__}")
-    return run(cfg, module, run_dir)
+    return run(cfg, module.tokenizer if cfg.mode == "tokenize" else module, run_dir)
+
+
+def shipped_tokenizer(cfg: DictConfig) -> ImageTokenizer:
+    """The image tokenizer of the weights folder `cfg.weights` (e.g. gaia1), checked against the data's frame size:
+    a token cache for a world model that will run beside those weights."""
+    if cfg.ckpt:
+        raise ValueError(f"weights={cfg.weights} replaces ckpt={cfg.ckpt}; give one of them")
+    nets, info = load_nets(shipped_folder(cfg.weights), "tokenizer", cfg.device)
+    size = tuple(info.get("image_size", ()))
+    if size != (cfg.data.height, cfg.data.width):
+        raise ValueError(f"weights={cfg.weights}: its tokenizer was trained on {size} frames, but data.height × "
+                         f"data.width is {(cfg.data.height, cfg.data.width)}; set them to match")
+    return nets["net"]
 
 
 def run_gaia2(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:

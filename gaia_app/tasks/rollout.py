@@ -27,7 +27,8 @@ from omegaconf import DictConfig
 from gaia_app.data.transforms import to_uint8
 from gaia_app.data.video_io import write_video
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline, Gaia1Rollout
-from gaia_app.pipelines.gaia1_inputs import MODES, ContextClip, build_conditioning, context_for, describe_actions
+from gaia_app.pipelines.gaia1_inputs import (MODES, ContextClip, build_conditioning, context_for, describe_actions,
+                                              future_frames)
 from gaia_app.pipelines.shipped import shipped_folder
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.viz.blueprints import rollout_blueprint
@@ -149,7 +150,7 @@ def log_rollout(path: Path, rollout: Gaia1Rollout, context: ContextClip | None, 
 def rollout(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Run one rollout of `cfg.mode` and write its outputs (module docstring); returns the results."""
     pipeline = load_pipeline(cfg)
-    frames = max(1, math.ceil(cfg.seconds * pipeline.rate))
+    frames = future_frames(cfg.seconds, pipeline.rate)
     context = context_for(cfg.mode, cfg.context.source, cfg.context.seed, cfg.context.index, cfg.context.folder,
                           cfg.context.frames, frames, pipeline.rate, *pipeline.image_size)
     t0 = cfg.context.frames if context is not None else 0

@@ -11,7 +11,6 @@ From the shipped weights (weights=gaia1) or checkpoints, in one run:
 
 from __future__ import annotations
 
-import math
 import re
 from pathlib import Path
 from typing import Any
@@ -26,6 +25,7 @@ from gaia_app.data.synthetic.gallery import label
 from gaia_app.data.video_io import write_video
 from gaia_app.eval.controllability import probe_clips
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
+from gaia_app.pipelines.gaia1_inputs import future_frames
 from gaia_app.tasks.controllability import commanded_actions, rollout_frames, world_clips
 from gaia_app.tasks.rollout import load_pipeline, mark, staging
 from gaia_app.utils.run_dir import atomic_write_text
@@ -65,7 +65,7 @@ def write_panel(folder: Path, videos: np.ndarray, names: list[str], fps: float) 
 def command_panel(cfg: DictConfig, pipeline: Gaia1Pipeline, generator: torch.Generator) -> dict[str, Any]:
     """The held-out context clip, then one future per command (and the real continuation)."""
     rate, (height, width) = pipeline.rate, pipeline.image_size
-    t0, frames = cfg.context.frames, max(1, math.ceil(cfg.seconds * rate))
+    t0, frames = cfg.context.frames, future_frames(cfg.seconds, rate)
     clip = probe_clips(world_clips(cfg.context.seed, 1, height, width, t0 + frames, rate, start=cfg.context.index),
                        rate, t0 + frames)
     commands = [tuple(c) for c in cfg.showcase.commands]
@@ -78,7 +78,7 @@ def command_panel(cfg: DictConfig, pipeline: Gaia1Pipeline, generator: torch.Gen
 
 def prompt_panel(cfg: DictConfig, pipeline: Gaia1Pipeline, generator: torch.Generator) -> dict[str, Any]:
     """Generation from nothing: no prompt, then each prompt of `showcase.prompts`, `seconds` long."""
-    frames = max(1, math.ceil(cfg.seconds * pipeline.rate))
+    frames = future_frames(cfg.seconds, pipeline.rate)
     prompts = list(cfg.showcase.prompts)
     videos = [rollout_frames(pipeline, None, frames, 1, None, None, generator)]
     for prompt in prompts:

@@ -3,16 +3,19 @@
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import InstantiationException
 from hydra.types import RunMode
 from hydra.utils import instantiate
 from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
+from gaia_app.lit.checkpoint import check_checkpoint_file
 from gaia_app.lit.compile import CompileNet
 from gaia_app.lit.strategies import build_strategy
 from gaia_app.utils.run_dir import save_resolved_config
@@ -29,14 +32,20 @@ def instantiate_list(node: DictConfig | None) -> list[Any]:
 
 
 def resume_path(ckpt_path: str | None, run_dir: Path) -> str | None:
-    """`ckpt_path=last` resumes from this run dir's last.ckpt if present; a path must exist."""
+    """`ckpt_path=last` resumes from this run dir's last.ckpt if present (and says so when it starts fresh); a
+    path must exist. The checkpoint is checked to load safely (weights only, lit/checkpoint.py) before Lightning
+    reads it."""
     if ckpt_path in (None, ""):
         return None
     if ckpt_path == "last":
         last = run_dir / "checkpoints" / "last.ckpt"
-        return str(last) if last.exists() else None
-    if not Path(ckpt_path).exists():
+        if not last.exists():
+            log.info("ckpt_path=last: no checkpoint in %s yet, so this run starts fresh from step 0", last.parent)
+            return None
+        ckpt_path = str(last)
+    elif not Path(ckpt_path).exists():
         raise FileNotFoundError(f"ckpt_path={ckpt_path}: no such checkpoint")
+    check_checkpoint_file(ckpt_path)
     return ckpt_path
 
 
@@ -45,8 +54,8 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     if "family" in cfg.model:
         raise ValueError(f"model={cfg.model.family} is a generation family of generate.py, not a trainable model: "
                          "train with experiment=gaia1/... or experiment=gaia2/...")
-    datamodule = instantiate(cfg.data)
-    model = instantiate(cfg.model)
+    datamodule = instantiate_setting(cfg.data, "data")
+    model = instantiate_setting(cfg.model, "model")
     # the model's own config travels in the checkpoint so generate.py can rebuild it without Hydra
     model.save_hyperparameters({"model_cfg": OmegaConf.to_container(cfg.model, resolve=True)})
     callbacks = instantiate_list(cfg.get("callbacks"))
@@ -59,6 +68,23 @@ def build(cfg: DictConfig) -> dict[str, Any]:
     trainer: L.Trainer = instantiate(trainer_cfg, callbacks=callbacks, logger=loggers or False, strategy=strategy)
     check_sweep_launch(trainer)
     return {"datamodule": datamodule, "model": model, "trainer": trainer}
+
+
+def instantiate_setting(node: DictConfig, name: str) -> Any:
+    """instantiate(node), with a one-line error naming the setting when a key is not an argument of its target
+    (e.g. experiment=gaia1/video_decoder_tiny sets data.source.clip_len, a setting of the synthetic world, and
+    data=video_folder swaps in a clip-folder source that has none)."""
+    try:
+        return instantiate(node)
+    except InstantiationException as error:
+        found = re.search(r"Error in call to target '([^']+)':\s*TypeError\(.*unexpected keyword argument '(\w+)'",
+                          str(error), re.S)
+        key = re.search(r"full_key: (\S+)", str(error))
+        if not found:
+            raise
+        where = key.group(1) if key else name  # Hydra's full key already starts at the root
+        raise ValueError(f"{where}.{found.group(2)}: {found.group(1)} takes no '{found.group(2)}' (a setting meant "
+                         f"for another {name} config); remove it with ~{where}.{found.group(2)}") from None
 
 
 def check_sweep_launch(trainer: L.Trainer) -> None:
@@ -85,7 +111,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     ckpt = resume_path(cfg.get("ckpt_path"), run_dir)
     if ckpt:
         log.info("resuming from %s", ckpt)
-    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt)
+    # weights_only: Lightning's own resume load must not unpickle code either
+    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
     log.info("run dir: %s", run_dir)
     return {"metrics": metrics, "run_dir": run_dir, **objects}

@@ -9,9 +9,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import shutil
-import socket
-import sys
 import time
 import uuid
 from collections.abc import Iterable, Mapping, Sequence
@@ -30,10 +27,10 @@ from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from gaia_app.viz.blueprints import training_blueprint
+from gaia_app.viz.viewer import LOOPBACK, ViewerUnavailable, connect_host, port_open, spawn_viewer
 
 log = logging.getLogger(__name__)
 
-_SPAWN_WAIT_S = 0.5  # rr.spawn already waits for the viewer to bind; this only probes the port
 _FLUSH_TIMEOUT_S = 10.0
 
 
@@ -93,22 +90,6 @@ def _entity(key: str, root: str) -> list[str]:
     return [root, *[p for p in key.split("/") if p]]
 
 
-def _find_viewer() -> str | None:
-    """The `rerun` binary: on PATH, or beside the interpreter (an un-activated venv)."""
-    found = shutil.which("rerun")
-    beside = Path(sys.executable).parent / "rerun"
-    return found or (str(beside) if beside.exists() else None)
-
-
-def _port_open(port: int) -> bool:
-    """True when something accepts TCP connections on localhost:port."""
-    try:
-        with socket.create_connection(("127.0.0.1", port), timeout=_SPAWN_WAIT_S):
-            return True
-    except OSError:
-        return False
-
-
 class RerunLogger(Logger):
     """Write one Rerun recording per run to `<save_dir>/<recording_file>`, rank 0 only.
 
@@ -116,11 +97,16 @@ class RerunLogger(Logger):
     spawn: also stream live to a Rerun viewer on `viewer_port` (reusing one already listening
         there). Where no viewer can be started (no binary, no display) a warning is logged and
         only the file is written: visualisation never stops training.
+    bind: the address a spawned viewer listens on: loopback by default (the `rerun` binary's own default is every
+        interface); "0.0.0.0" shares the live view with the network.
     flush_interval_s: how long rows are batched into one chunk before they reach the file/viewer.
         Every flush closes the open chunks, and a chunk costs ~1 kB, so flushing on each logging
         step (Lightning calls `save()` after every `log_metrics`) made the .rrd ~40x larger.
     After `finalize` (end of fit/validate/test) a later use of the logger continues the same
-    recording id in `<stem>.<n>.rrd`; the viewer merges files that share a recording id.
+    recording id in `<stem>.<n>.rrd`; the viewer merges files that share a recording id. A resumed run (a new
+    process in the same run dir) does the same: the earlier launches' files are kept, the new one writes the next
+    free `<stem>.<n>.rrd`, and without a `version` the recording id derives from the run dir, so
+    `rerun <run dir>/run*.rrd` shows the whole history as one recording.
     """
 
     def __init__(
@@ -133,6 +119,7 @@ class RerunLogger(Logger):
         application_id: str = "gaia_app",
         viewer_port: int = 9876,
         flush_interval_s: float = 2.0,
+        bind: str = LOOPBACK,
     ) -> None:
         super().__init__()
         self._save_dir = os.fspath(save_dir)
@@ -142,6 +129,7 @@ class RerunLogger(Logger):
         self._spawn = spawn
         self._application_id = application_id
         self._viewer_port = viewer_port
+        self._bind = bind
         self._flush_interval_s = flush_interval_s
         self._last_flush = 0.0
         self._recording_id: str | None = None  # chosen on rank 0 at first use
@@ -184,9 +172,10 @@ class RerunLogger(Logger):
     def _open(self) -> rr.RecordingStream:
         """Create the stream, attach the file sink (and the live viewer), send the blueprint."""
         self._segment += 1
+        while self.recording_path.exists():  # an earlier launch's file (a resumed run): keep it, write the next
+            self._segment += 1
         if self._recording_id is None:
-            suffix = self._version if self._version is not None else uuid.uuid4().hex[:8]
-            self._recording_id = f"{self._name}-{suffix}"
+            self._recording_id = f"{self._name}-{self._version if self._version is not None else self._run_dir_id()}"
         rec = rr.RecordingStream(
             self._application_id,
             recording_id=self._recording_id,
@@ -195,31 +184,27 @@ class RerunLogger(Logger):
         path = self.recording_path
         path.parent.mkdir(parents=True, exist_ok=True)
         sinks: list[Any] = [rr.FileSink(str(path))]
-        if self._spawn and self._start_viewer(rec):
-            sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{self._viewer_port}/proxy"))
+        if self._spawn and self._start_viewer():
+            sinks.append(rr.GrpcSink(f"rerun+http://{connect_host(self._bind)}:{self._viewer_port}/proxy"))
         rec.set_sinks(*sinks, default_blueprint=self.blueprint())
         if self._segment > 1:
-            log.info("Rerun: continuing recording %s in %s", self._recording_id, path)
+            first = Path(self._save_dir) / self._recording_file
+            log.info("Rerun: continuing recording %s in %s; the earlier steps stay in %s (open them together: "
+                     "rerun %s)", self._recording_id, path, first, first.with_name(f"{first.stem}*{first.suffix}"))
         return rec
 
-    def _start_viewer(self, rec: rr.RecordingStream) -> bool:
-        """Spawn (or reuse) a viewer on the port; False with a warning when none is reachable."""
+    def _run_dir_id(self) -> str:
+        """A recording id suffix fixed by the run dir: every launch of one run (resumes) continues one recording."""
+        return uuid.uuid5(uuid.NAMESPACE_URL, str(Path(self._save_dir).resolve())).hex[:8]
+
+    def _start_viewer(self) -> bool:
+        """Spawn (or reuse) a viewer on bind:port; False with a warning when none is reachable."""
+        if port_open(connect_host(self._bind), self._viewer_port):
+            return True
         try:
-            rr.spawn(
-                port=self._viewer_port,
-                connect=False,
-                executable_path=_find_viewer(),
-                recording=rec,
-            )
-        except Exception as err:  # noqa: BLE001  missing binary, exec failure: keep the file only
-            log.warning("Rerun: could not spawn a viewer (%s); writing %s only", err, self.recording_path)
-            return False
-        if not _port_open(self._viewer_port):
-            log.warning(
-                "Rerun: no viewer listening on port %d (no display?); writing %s only",
-                self._viewer_port,
-                self.recording_path,
-            )
+            spawn_viewer(self._viewer_port, self._bind)
+        except (ViewerUnavailable, OSError) as err:  # missing binary, no display: keep the file only
+            log.warning("Rerun: could not start a viewer (%s); writing %s only", err, self.recording_path)
             return False
         return True
 

@@ -6,43 +6,31 @@ The headless viewer needs a graphics adapter: on a machine without a GPU, Mesa's
 
 from __future__ import annotations
 
-import shutil
 import socket
-import sys
 import time
 from pathlib import Path
 
 from gaia_app.utils.run_dir import atomic_write_bytes
-
-
-class ViewerUnavailable(RuntimeError):
-    """The headless Rerun viewer could not start here (no executable, no graphics adapter)."""
-
-
-def viewer_executable() -> str:
-    """The `rerun` CLI of this environment (next to the interpreter), else the one on PATH."""
-    beside = Path(sys.executable).parent / "rerun"
-    found = str(beside) if beside.exists() else shutil.which("rerun")
-    if found is None:
-        raise ViewerUnavailable("no `rerun` executable next to the Python interpreter or on PATH "
-                                "(it comes with `pip install rerun-sdk`)")
-    return found
+from gaia_app.viz.viewer import LOOPBACK, ViewerUnavailable, spawn_viewer  # noqa: F401 (ViewerUnavailable: re-exported)
 
 
 def _free_port() -> int:
     with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
+        s.bind((LOOPBACK, 0))
         return s.getsockname()[1]
 
 
 def _spawn_headless():
+    """A headless viewer process on a free loopback port, and a client of it."""
     from rerun.experimental import ViewerClient  # experimental API: import where used
 
+    port = _free_port()
+    process = spawn_viewer(port, headless=True, hide_welcome_screen=True, detach=False)
     try:
-        return ViewerClient.spawn(headless=True, port=_free_port(), hide_welcome_screen=True,
-                                  executable_path=viewer_executable())
+        return ViewerClient(f"rerun+http://{LOOPBACK}:{port}/proxy"), process
     except (RuntimeError, TimeoutError, OSError) as err:
-        raise ViewerUnavailable(f"the headless Rerun viewer did not start ({err}); without a GPU it needs "
+        process.kill()
+        raise ViewerUnavailable(f"the headless Rerun viewer did not answer ({err}); without a GPU it needs "
                                 "Mesa's software Vulkan driver: apt-get install mesa-vulkan-drivers") from err
 
 
@@ -57,7 +45,7 @@ def screenshot_recording(rrd: str | Path, png: str | Path, frame: int | None = N
     rrd = Path(rrd)
     if not rrd.is_file():
         raise FileNotFoundError(f"no Rerun recording at {rrd}")
-    viewer = _spawn_headless()
+    viewer, process = _spawn_headless()
     try:
         try:
             opened = viewer.open(str(rrd.resolve()))
@@ -73,8 +61,9 @@ def screenshot_recording(rrd: str | Path, png: str | Path, frame: int | None = N
         time.sleep(settle_s)
         atomic_write_bytes(png, viewer.take_screenshot(max_size=max_size))
         return Path(png)
-    finally:
-        viewer.quit()
+    finally:  # the client only connected: the viewer process is ours to stop
+        process.kill()
+        process.wait(timeout=10)
 
 
 def _frame_timeline(viewer, rrd: Path):

@@ -132,3 +132,22 @@ def test_open_loop_clips_switch_to_a_constant_command_in_the_same_scene() -> Non
             np.testing.assert_array_equal(mine.actions, theirs.actions)
     with pytest.raises(ValueError, match="driven_share"):
         SyntheticClipDataset(num_clips=1, driven_share=1.5)
+
+
+def test_open_loop_acceleration_range_sets_the_commands() -> None:
+    """open_loop_acceleration: every open-loop command accelerates within the given range, and the range is checked."""
+    fps = 6.25
+    rates = []
+    for low, high in ((3.0, 4.0), (-5.0, -4.0)):
+        ds = SyntheticClipDataset(num_clips=6, seed=2, height=16, width=16, clip_len=16, fps=fps, driven_share=1.0,
+                                  open_loop_acceleration=[low, high])
+        for i in range(len(ds)):
+            speed = ds[i].actions[-4:, 0]
+            if 0.0 < speed.min() and speed.max() < 30.0:  # not clipped at a stop or at the speed cap
+                rate = float(np.diff(speed).mean() * fps)
+                assert low - 1e-3 <= rate <= high + 1e-3, (low, high, rate)
+                rates.append(rate)
+    assert min(rates) < 0 < max(rates)
+    for bad in ([2.0, 1.0], [0.0], "fast", [0.0, float("nan")]):
+        with pytest.raises(ValueError, match="open_loop_acceleration"):
+            SyntheticClipDataset(num_clips=1, open_loop_acceleration=bad)

@@ -15,6 +15,7 @@ from rerun.chunk import RrdReader
 from torch.utils.data import DataLoader, TensorDataset
 
 from gaia_app.viz import rerun_logger as rl
+from gaia_app.viz import viewer
 from gaia_app.viz.callbacks import RerunMediaCallback
 from gaia_app.viz.rerun_logger import RerunLogger, flatten_params, rerun_logger_of
 
@@ -214,7 +215,7 @@ def test_save_is_throttled_so_rows_share_chunks(tmp_path):
 
 
 def test_spawn_without_viewer_warns_and_records(tmp_path, monkeypatch, caplog):
-    monkeypatch.setattr(rl, "_find_viewer", lambda: str(tmp_path / "no-such-rerun"))
+    monkeypatch.setattr(viewer, "viewer_executable", lambda: str(tmp_path / "no-such-rerun"))
     logger = RerunLogger(str(tmp_path), spawn=True, viewer_port=39871)
     with caplog.at_level(logging.WARNING, logger=rl.__name__):
         logger.log_metrics({"train/loss": 1.0}, step=0)
@@ -222,6 +223,50 @@ def test_spawn_without_viewer_warns_and_records(tmp_path, monkeypatch, caplog):
     assert "writing" in caplog.text
     _, temporal, _ = _read(tmp_path / "run.rrd")
     assert _rows(temporal["/metrics/train/loss"]) == 1
+
+
+def test_a_resumed_run_keeps_the_earlier_recording_and_continues_its_id(tmp_path, caplog):
+    """A new process in the same run dir (ckpt_path=last) must not overwrite run.rrd: it writes run.1.rrd with the
+    same recording id, so the viewer shows both launches as one recording."""
+    first = RerunLogger(str(tmp_path))
+    for step in range(3):
+        first.log_metrics({"train/loss": float(step)}, step=step)
+    first.finalize("success")
+    size = (tmp_path / "run.rrd").stat().st_size
+    resumed = RerunLogger(str(tmp_path))  # what the relaunched process builds from the same config
+    with caplog.at_level(logging.INFO, logger=rl.__name__):
+        for step in range(3, 5):
+            resumed.log_metrics({"train/loss": float(step)}, step=step)
+    resumed.finalize("success")
+    assert (tmp_path / "run.rrd").stat().st_size == size
+    assert "the earlier steps stay in" in caplog.text and "run*.rrd" in caplog.text
+    readers = [_read(tmp_path / name) for name in ("run.rrd", "run.1.rrd")]
+    assert [_rows(temporal["/metrics/train/loss"]) for _, temporal, _ in readers] == [3, 2]
+    ids = {r.recording_id for reader, _, _ in readers for r in reader.recordings()}
+    assert len(ids) == 1
+
+
+def test_a_spawned_viewer_listens_on_loopback_unless_told_otherwise(tmp_path, monkeypatch):
+    launched = []
+
+    class FakeViewer:
+        def __init__(self, args, **kwargs):
+            launched.append(args)
+
+        def poll(self):
+            return None
+
+    monkeypatch.setattr(viewer.subprocess, "Popen", FakeViewer)
+    monkeypatch.setattr(viewer, "port_open", lambda host, port, timeout=0.5: bool(launched))
+    monkeypatch.setattr(rl, "port_open", lambda host, port, timeout=0.5: False)
+    monkeypatch.setattr(viewer, "viewer_executable", lambda: "rerun")
+    for kwargs, address in (({}, "127.0.0.1"), ({"bind": "0.0.0.0"}, "0.0.0.0")):
+        logger = RerunLogger(str(tmp_path / address), spawn=True, viewer_port=39872, **kwargs)
+        assert logger._start_viewer()
+        args = launched[-1]
+        assert args[args.index("--bind") + 1] == address and args[args.index("--port") + 1] == "39872"
+    cfg = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "logger" / "rerun.yaml")
+    assert cfg.rerun.bind == "127.0.0.1"
 
 
 @pytest.mark.slow

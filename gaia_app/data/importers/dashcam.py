@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 from collections.abc import Iterator
 from itertools import islice
 from pathlib import Path
@@ -20,6 +21,7 @@ from tqdm import tqdm
 
 from gaia_app.data.clip import ClipError
 from gaia_app.data.clip_writer import ClipFolderWriter, label_rows, meta_json
+from gaia_app.data.names import check_camera_name, check_clip_id
 from gaia_app.data.transforms import ResizePlan, plan_resize, resample_indices, resize_image
 from gaia_app.data.video_io import count_intact_packets, iter_frames, video_info
 
@@ -52,7 +54,9 @@ def _selected_frames(video: Path, keep: np.ndarray, plan: ResizePlan | None, bar
 
 
 def _clip_ids(stem: str, clip_id: str | None, count: int) -> list[str]:
-    base = clip_id or stem
+    """Clip folder names: the given clip id (checked), else the file stem made plain (other characters → '_')."""
+    base = check_clip_id(clip_id, "--clip-id") if clip_id else \
+        re.sub(r"[^A-Za-z0-9._-]", "_", stem).lstrip("._-").replace("..", "_") or "clip"
     return [base] if count == 1 else [f"{base}_{k:04d}" for k in range(count)]
 
 
@@ -77,6 +81,7 @@ def import_dashcam(
     with `resize_mode` "crop" (aspect kept) or "stretch". clip_id: base name (default: the file
     stem; split clips get `_0000`, `_0001`, ...). The video is decoded once, streaming.
     """
+    check_camera_name(camera, "--camera")
     video = Path(video_path)
     info = video_info(video)
     num_frames = info.num_frames or count_intact_packets(video)  # some containers do not say

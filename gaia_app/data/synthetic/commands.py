@@ -19,9 +19,10 @@ STRAIGHT_SHARE = 1 / 3
 MAX_SPEED = 30.0  # m/s, the cap of commanded speeds
 
 
-def draw_command(rng: np.random.Generator) -> tuple[float, float]:
-    """One random (acceleration m/s², curvature 1/m)."""
-    acceleration = rng.uniform(*ACCELERATION_RANGE)
+def draw_command(rng: np.random.Generator,
+                 acceleration_range: tuple[float, float] = ACCELERATION_RANGE) -> tuple[float, float]:
+    """One random (acceleration m/s² uniform in `acceleration_range`, curvature 1/m)."""
+    acceleration = rng.uniform(*acceleration_range)
     curvature = 0.0 if rng.random() < STRAIGHT_SHARE else rng.uniform(*CURVATURE_RANGE)
     return float(acceleration), float(curvature)
 
@@ -32,12 +33,25 @@ def command_profile(start_speed: float, acceleration: float, curvature: float, s
     return np.stack([speed, np.full(steps, curvature)], axis=1)
 
 
-def open_loop_actions(rng: np.random.Generator, policy: np.ndarray, fps: float) -> np.ndarray:
-    """(t, 2) actions: the policy's (t, 2) until a random frame in the middle half of the clip, then a random command."""
+def check_acceleration_range(value: object) -> tuple[float, float]:
+    """(low, high) m/s² with low < high, both finite; ValueError naming the setting otherwise."""
+    try:
+        low, high = (float(v) for v in value)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise ValueError(f"open_loop_acceleration: expected [low, high] in m/s², got {value!r}") from None
+    if not (np.isfinite(low) and np.isfinite(high) and low < high):
+        raise ValueError(f"open_loop_acceleration: expected finite low < high in m/s², got {value!r}")
+    return low, high
+
+
+def open_loop_actions(rng: np.random.Generator, policy: np.ndarray, fps: float,
+                      acceleration_range: tuple[float, float] = ACCELERATION_RANGE) -> np.ndarray:
+    """(t, 2) actions: the policy's (t, 2) until a random frame in the middle half of the clip, then a random command
+    (acceleration uniform in `acceleration_range`)."""
     t = len(policy)
     if t < 4:
         raise ValueError(f"open-loop commands need clips of at least 4 frames, got {t}")
     switch = int(rng.integers(t // 4, max(t // 4 + 1, 3 * t // 4)))
-    acceleration, curvature = draw_command(rng)
+    acceleration, curvature = draw_command(rng, acceleration_range)
     tail = command_profile(float(policy[max(switch - 1, 0), 0]), acceleration, curvature, t - switch, 1.0 / fps)
     return np.concatenate([policy[:switch], tail]).astype(np.float64)

@@ -15,11 +15,12 @@ import numpy as np
 import torch
 
 from gaia_app.data.clip import Clip
-from gaia_app.data.synthetic.commands import open_loop_actions
+from gaia_app.data.synthetic.commands import ACCELERATION_RANGE, check_acceleration_range, open_loop_actions
 from gaia_app.data.synthetic.generate import SyntheticSample, WorldConfig, clip_meta, sample_from_rng
 from gaia_app.data.synthetic.labels import frame_meta
 from gaia_app.data.synthetic.planning import ScenePlan, make_plan
 from gaia_app.data.synthetic.scenario import Scenario, draw_setting
+from gaia_app.data.transforms import resample_indices
 from gaia_app.data.synthetic.simulate import FrameState, simulate
 
 
@@ -33,12 +34,14 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
     driven_share: share of clips whose ego leaves its policy in the middle half of the clip for a random constant
         acceleration and curvature (gaia_app/data/synthetic/commands.py): actions the frames do not give away,
         which a world model needs to learn what a command does. Such clips have meta["open_loop"] = True.
+    open_loop_acceleration: (low, high) m/s² of the open-loop commands' constant acceleration (uniform).
     """
 
     def __init__(self, num_clips: int = 64, seed: int = 0, height: int = 64, width: int = 112,
                  cameras: int | Sequence[str] = ("front",), clip_len: int = 8, fps: float = 25.0,
                  weather_mix: Mapping[str, float] | None = None, time_of_day_mix: Mapping[str, float] | None = None,
-                 agent_density: float = 1.0, scenario: Scenario | None = None, driven_share: float = 0.0):
+                 agent_density: float = 1.0, scenario: Scenario | None = None, driven_share: float = 0.0,
+                 open_loop_acceleration: Sequence[float] = ACCELERATION_RANGE):
         if isinstance(num_clips, bool) or not isinstance(num_clips, (int, np.integer)) or num_clips < 1:
             raise ValueError(f"num_clips: expected a positive integer, got {num_clips!r}")
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -51,6 +54,7 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
             raise ValueError("driven_share > 0 with scenario.ego_actions: the clip's actions are given twice")
         self.num_clips, self.seed, self.scenario = int(num_clips), int(seed), scenario
         self.driven_share = float(driven_share)
+        self.open_loop_acceleration = check_acceleration_range(open_loop_acceleration)
         cameras = cameras if isinstance(cameras, (int, np.integer)) else list(cameras)  # Hydra passes ListConfig
         self.config = WorldConfig.make(height, width, cameras, clip_len, fps, weather_mix, time_of_day_mix, agent_density)
 
@@ -77,11 +81,17 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
         choice = np.random.default_rng([self.seed, index, OPEN_LOOP_STREAM])
         if choice.random() >= self.driven_share:
             return self.scenario
-        actions = open_loop_actions(choice, self.simulated_actions(index), self.config.fps)
+        actions = open_loop_actions(choice, self.simulated_actions(index), self.config.fps, self.open_loop_acceleration)
         return replace(self.scenario or Scenario(), ego_actions=actions)
 
     def __getitem__(self, index: int) -> Clip:
         return self.sample(index).clip
+
+    def steps_at(self, index: int, fps: float | None) -> int:
+        """Frames of clip `index` after resampling to `fps` (None: the world's own rate); every clip is as long."""
+        self._rng(int(index))  # range check
+        timestamps = np.arange(self.config.clip_len) / self.config.fps
+        return len(timestamps) if fps is None else len(resample_indices(timestamps, fps))
 
     def simulate(self, index: int) -> tuple[ScenePlan, list[FrameState]]:
         """The plan and per-frame simulation states of clip `index`, without rendering anything."""
