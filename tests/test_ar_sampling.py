@@ -106,3 +106,22 @@ def test_pipeline_futures_guidance_and_negative_prompt(net: WorldModel) -> None:
     negative_out = pipe(context, frames=2, text=text, negative_text=negative, generator=torch.Generator().manual_seed(0))
     unconditional = WorldModelRolloutPipeline(net, AutoregressiveSampler(TokenPicker("argmax")))(context, frames=2)
     assert negative_out.tokens.shape == unconditional.tokens.shape == (2, 3, N)
+
+
+def test_text_scale_guides_prompted_rollouts_and_scale_the_others(net: WorldModel) -> None:
+    """guidance.text_scale: a rollout prompted with text samples exactly as with scale=text_scale; one steered by
+    actions alone exactly as with `scale`."""
+    context = torch.randint(0, V, (2, 1, N))
+    text, actions = torch.randn(2, 3, M, E), torch.randn(2, 3, 2) * torch.tensor([8.0, 0.03]) + torch.tensor([10.0, 0])
+
+    def tokens(guidance: ClassifierFreeGuidance, **streams) -> torch.Tensor:
+        pipe = WorldModelRolloutPipeline(net, AutoregressiveSampler(TokenPicker("sample")), guidance)
+        return pipe(context, frames=2, generator=torch.Generator().manual_seed(3), **streams).tokens
+
+    split = ClassifierFreeGuidance(scale=0.5, text_scale=6.0)
+    assert torch.equal(tokens(split, text=text), tokens(ClassifierFreeGuidance(6.0), text=text))
+    assert torch.equal(tokens(split, actions=actions), tokens(ClassifierFreeGuidance(0.5), actions=actions))
+    assert not torch.equal(tokens(split, text=text), tokens(ClassifierFreeGuidance(0.5), text=text))
+    assert split.for_rollout(prompted=False) is split and split.for_rollout(prompted=True).scale == 6.0
+    with pytest.raises(ValueError, match=r"guidance.text_scale=-1.0: expected a finite number ≥ 0"):
+        ClassifierFreeGuidance(scale=1.0, text_scale=-1.0)

@@ -10,7 +10,7 @@ combines them into a (f, n) table of scales, one per generated token.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -53,11 +53,25 @@ class ClassifierFreeGuidance:
 
     scale 0 gives the conditional logits (the diffusers-style weight 1 + s = 1). Replacing the
     unconditioned stream by a negative prompt's stream gives negative prompting (GAIA-1 §5.1).
+    text_scale: the scale of rollouts prompted with text, when it differs from that of rollouts steered by actions
+    alone (None: `scale` for both). GAIA-1 §5.1 leaves scale and schedule to be tuned per use; a text prompt
+    changes the whole scene and takes more guidance than a command, whose larger scales break frames up.
     """
 
     scale: float = 3.0
     tokens: ConstantSchedule | LinearSchedule | CosineSchedule = field(default_factory=ConstantSchedule)
     frames: ConstantSchedule | LinearSchedule | CosineSchedule = field(default_factory=ConstantSchedule)
+    text_scale: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("scale", "text_scale"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, (int, float)) and 0 <= value < float("inf")):
+                raise ValueError(f"guidance.{name}={value!r}: expected a finite number ≥ 0")
+
+    def for_rollout(self, prompted: bool) -> ClassifierFreeGuidance:
+        """The guidance of one rollout: `text_scale` replaces `scale` when the rollout is prompted with text."""
+        return replace(self, scale=self.text_scale) if prompted and self.text_scale is not None else self
 
     def scales(self, frames: int, tokens: int) -> torch.Tensor:
         """(f, n) guidance scale of each generated token."""

@@ -61,5 +61,6 @@ class WorldModelRolloutPipeline:
             uncond = self.conditions(batch, steps, negative_text, actions)
         elif self.guidance is not None:
             uncond = self.conditions(batch, steps, text, actions, drop=self.guided_streams)
-        tokens = self.sampler(self.net, context, cond, uncond, frames, self.guidance, generator)
+        guidance = None if self.guidance is None else self.guidance.for_rollout(prompted=text is not None)
+        tokens = self.sampler(self.net, context, cond, uncond, frames, guidance, generator)
         return RolloutOutput(tokens, context.shape[1])

@@ -57,7 +57,8 @@ def staging(run_dir: Path) -> Iterator[Path]:
 def load_pipeline(cfg: DictConfig) -> Gaia1Pipeline:
     """The three checkpoints of `cfg` (decoder optional), or its shipped `weights`, with the sampler and guidance
     of `cfg`."""
-    guidance = instantiate(cfg.guidance) if cfg.guidance.scale > 0 else None
+    guided = cfg.guidance.scale > 0 or (cfg.guidance.get("text_scale") or 0) > 0
+    guidance = instantiate(cfg.guidance) if guided else None
     if cfg.negative_prompt and guidance is None:
         raise ValueError("negative_prompt replaces the unconditioned stream of guidance: set guidance.scale > 0")
     if cfg.get("weights"):
@@ -162,8 +163,9 @@ def rollout(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                   "captions": None if conditioning.captions is None else list(conditioning.captions),
                   "negative_prompt": cfg.negative_prompt,
                   "actions": describe_actions(None if conditioning.actions is None else conditioning.actions.tolist()),
-                  "commanded_actions": describe_actions(commanded), "guidance": _guidance(pipeline, frames)}
-    scales = _guidance_scales(pipeline, frames)
+                  "commanded_actions": describe_actions(commanded),
+                  "guidance": _guidance(pipeline, frames, conditioning.captions is not None)}
+    scales = _guidance_scales(pipeline, frames, conditioning.captions is not None)
     with staging(run_dir) as stage:
         files = write_videos(stage, out, context, pipeline.upsample)
         np.save(stage / "tokens.npy", out.tokens.numpy())
@@ -181,13 +183,14 @@ def _codebook(pipeline: Gaia1Pipeline) -> torch.Tensor:
     return pipeline.tokenizer.quantizer.codebook.weight.detach().cpu()
 
 
-def _guidance_scales(pipeline: Gaia1Pipeline, frames: int) -> torch.Tensor | None:
+def _guidance_scales(pipeline: Gaia1Pipeline, frames: int, prompted: bool) -> torch.Tensor | None:
+    """(f, n) scales of this rollout's generated tokens (text_scale when it is prompted with text)."""
     guidance = pipeline.rollouts.guidance
-    return None if guidance is None else guidance.scales(frames, pipeline.world_model.n)
+    return None if guidance is None else guidance.for_rollout(prompted).scales(frames, pipeline.world_model.n)
 
 
-def _guidance(pipeline: Gaia1Pipeline, frames: int) -> dict[str, Any] | None:
-    scales = _guidance_scales(pipeline, frames)
+def _guidance(pipeline: Gaia1Pipeline, frames: int, prompted: bool) -> dict[str, Any] | None:
+    scales = _guidance_scales(pipeline, frames, prompted)
     if scales is None:
         return None
     return {"config": repr(pipeline.rollouts.guidance), "per_frame_mean_scale": [round(float(s), 4) for s in scales.mean(1)]}
