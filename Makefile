@@ -31,8 +31,9 @@ install-dev: $(VENV)/.installed-dev
 # right) and generation from the prompts "night" and "snow" against no prompt, as mp4 + PNG strips + one .rrd,
 # then the controllability table with the shipped probes (a smaller protocol than the MANIFEST's 32 contexts).
 # Frames are decoded one by one by the tokenizer: the video decoder does not yet beat that (docs/video_decoder.md).
-# The recipe's protocol (gaia_app/tasks/reproduce.py): 4 context frames, 1.25 s of future, guidance scale 1.5.
-PROTOCOL := context.frames=4 seconds=1.25 guidance.scale=1.5
+# The recipe's protocol (gaia_app/tasks/reproduce.py): 4 context frames, 1.25 s of future, guidance scale 1.5
+# (3 for rollouts prompted with text).
+PROTOCOL := context.frames=4 seconds=1.25 guidance.scale=1.5 guidance.text_scale=3
 DEMO_CONTROLLABILITY := controllability.contexts=8 controllability.text_repeats=8 controllability.real_clips=32 \
 	'controllability.prompts.weather=[clear,snow]'
 demo: install
