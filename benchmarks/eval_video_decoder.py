@@ -1,21 +1,27 @@
-"""Evaluate a trained GAIA-1 video decoder on held-out synthetic clips (issue 6, GAIA-1 §2.4, §5.2).
+"""Evaluate and diagnose a trained GAIA-1 video decoder on held-out synthetic clips (issues 6, 21; GAIA-1 §2.4, §5.2).
 
-    python train.py experiment=gaia1/video_decoder_tiny hydra.run.dir=outputs/video_decoder
-    python benchmarks/eval_video_decoder.py --ckpt outputs/video_decoder/checkpoints/last.ckpt
+    python train.py experiment=gaia1/reference/video_decoder hydra.run.dir=outputs/reference/video_decoder
+    python benchmarks/eval_video_decoder.py --ckpt outputs/reference/video_decoder/checkpoints/last.ckpt
 
-Decodes the ground-truth tokens of held-out clips (N frames at 6.25 Hz) two ways, side by side:
-  decoder     the §5.2 procedure (backward AR windows of T' = 7 with 2 context frames), EMA weights
-  framewise   the tokenizer's own image decoder, one frame at a time (what the video decoder replaces)
-and reports PSNR against the true frames and temporal flicker (mean |Δdecoded − Δtrue| of consecutive
-frames, gaia_app.eval.metrics.temporal_flicker; lower is steadier). Then the samplers side by side
-(DDIM 50/20/10, DPM-Solver++ 20/10: PSNR, flicker, seconds), the temporal upsampling 6.25 → 12.5 → 25 Hz
-against the true 25 Hz frames, and denoiser forward steps/s at the tiny size and a mid size.
-Writes results.json, a PNG strip (true | framewise | decoder) and an .rrd into --out.
+Decodes the ground-truth tokens of held-out clips (N frames at 6.25 Hz, the validation seed) side by side:
+  framewise   the tokenizer's own image decoder, one frame at a time: the rendered tokens alone, what the video
+              decoder replaces and, for a residual decoder, its input
+  ddim<k>     the §5.2 procedure (backward AR windows of T' = 7 with 2 context frames), EMA weights, k DDIM steps
+              (default 1, 5, 10, 20, 50; DDIM 1 is the decoder's one-step x̂₀ from pure noise)
+  mean        the one-step x̂₀ from x_T = 0 instead of noise: the decoder's estimate of the conditional mean
+  dpm<k>      DPM-Solver++(2M) with k steps, if asked (--samplers)
+and reports, per row, PSNR against the true frames and temporal flicker (mean |Δdecoded − Δtrue| of consecutive
+frames, gaia_app.eval.metrics.temporal_flicker; lower is steadier), each a mean over clips with a 95 % interval,
+and the paired difference to framewise with its interval. Then the temporal upsampling 6.25 → 12.5 → 25 Hz against
+the true 25 Hz frames, and the 25 Hz decoding path's frames/s at the tiny (trained) and a mid size (random weights,
+same cost). Writes results.json, results.md, steps.png (PSNR and flicker against steps), a PNG strip
+(true | framewise | decoder) and an .rrd into --out.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import time
 from pathlib import Path
@@ -37,8 +43,10 @@ from gaia_app.pipelines.gaia1_video_decoder import VideoDecodingPipeline
 from gaia_app.utils.run_dir import atomic_path, atomic_write_text
 from gaia_app.viz.media import to_hwc_uint8
 
-SAMPLERS = {"ddim50": (DDIMSampler, 50), "ddim20": (DDIMSampler, 20), "ddim10": (DDIMSampler, 10),
-            "dpm20": (DPMSolverSampler, 20), "dpm10": (DPMSolverSampler, 10)}
+SAMPLERS = {"ddim1": (DDIMSampler, 1), "ddim5": (DDIMSampler, 5), "ddim10": (DDIMSampler, 10),
+            "ddim20": (DDIMSampler, 20), "ddim50": (DDIMSampler, 50), "mean": (DDIMSampler, 1),
+            "dpm10": (DPMSolverSampler, 10), "dpm20": (DPMSolverSampler, 20)}
+DEFAULT_SAMPLERS = "ddim1,ddim5,ddim10,ddim20,ddim50,mean"
 
 
 def held_out_clips(run_cfg, clips: int, frames: int) -> torch.Tensor:
@@ -50,10 +58,93 @@ def held_out_clips(run_cfg, clips: int, frames: int) -> torch.Tensor:
     return video.float() / 127.5 - 1
 
 
-def scores(video: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
-    frames = rearrange(video, "b t c h w -> (b t) c h w")
-    return {"psnr": float(psnr(frames, rearrange(truth, "b t c h w -> (b t) c h w")).mean()),
-            "flicker": float(temporal_flicker(video, truth).mean())}
+def per_clip(video: torch.Tensor, truth: torch.Tensor) -> dict[str, torch.Tensor]:
+    """{"psnr": (b,) mean PSNR of each clip's frames, "flicker": (b,)} for videos (b, t, 3, H, W)."""
+    b = video.shape[0]
+    frame_psnr = psnr(rearrange(video, "b t c h w -> (b t) c h w"), rearrange(truth, "b t c h w -> (b t) c h w"))
+    return {"psnr": frame_psnr.reshape(b, -1).mean(1), "flicker": temporal_flicker(video, truth)}
+
+
+def interval(values: torch.Tensor) -> dict[str, float]:
+    """Mean and 95 % normal interval half-width over clips (values: (b,))."""
+    half = 1.96 * float(values.std()) / len(values) ** 0.5 if len(values) > 1 else float("nan")
+    return {"mean": float(values.mean()), "ci95": half}
+
+
+def scores(video: torch.Tensor, truth: torch.Tensor, baseline: dict[str, torch.Tensor] | None = None) -> dict:
+    """Mean ± 95 % interval of PSNR and flicker over clips; with `baseline` (per_clip of framewise) also the
+    paired differences video − baseline."""
+    clips = per_clip(video, truth)
+    out = {name: interval(values) for name, values in clips.items()}
+    if baseline is not None:
+        out.update({f"{name}_minus_framewise": interval(clips[name] - baseline[name]) for name in clips})
+    return out
+
+
+def table(results: dict) -> str:
+    """results.md: one row per decoding, PSNR and flicker with intervals and paired differences to framewise."""
+    def cell(entry: dict, digits: int) -> str:
+        return f"{entry['mean']:.{digits}f} ± {entry['ci95']:.{digits}f}"
+    lines = [f"{results['clips']} held-out clips × {results['frames_6_25hz']} frames at 6.25 Hz, 95 % intervals over "
+             "clips; differences are paired (same clips) against framewise.", "",
+             "| decoding of the same ground-truth tokens | PSNR (dB) ↑ | flicker ↓ | PSNR − framewise | "
+             "flicker − framewise | seconds |", "|---|---|---|---|---|---|"]
+    fw = results["framewise_tokenizer"]
+    lines.append(f"| tokenizer's image decoder, frame by frame (the rendered tokens) | {cell(fw['psnr'], 2)} | "
+                 f"{cell(fw['flicker'], 4)} | | | < 1 |")
+    for name, row in results["samplers"].items():
+        lines.append(f"| {name} | {cell(row['psnr'], 2)} | {cell(row['flicker'], 4)} | "
+                     f"{cell(row['psnr_minus_framewise'], 2)} | {cell(row['flicker_minus_framewise'], 4)} | "
+                     f"{row['seconds']:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_steps(path: Path, results: dict) -> None:
+    """steps.png: PSNR and flicker of the DDIM rows against steps, framewise as a line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = {int(k[4:]): v for k, v in results["samplers"].items() if k.startswith("ddim")}
+    if not rows:
+        return
+    steps = sorted(rows)
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
+    for ax, metric, label in ((axes[0], "psnr", "PSNR (dB) ↑"), (axes[1], "flicker", "flicker ↓")):
+        ax.errorbar(steps, [rows[k][metric]["mean"] for k in steps], yerr=[rows[k][metric]["ci95"] for k in steps],
+                    marker="o", capsize=3, label="video decoder, DDIM")
+        fw = results["framewise_tokenizer"][metric]
+        ax.axhline(fw["mean"], color="k", linestyle="--", label="frame by frame (rendered tokens)")
+        if "mean" in results["samplers"]:
+            ax.axhline(results["samplers"]["mean"][metric]["mean"], color="g", linestyle=":", label="x̂₀ from x_T = 0")
+        ax.set_xscale("log")
+        ax.set_xlabel("DDIM steps")
+        ax.set_ylabel(label)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
+
+
+class MeanStart:
+    """DDIM with one step run from x_T = 0 instead of noise: the deterministic one-step x̂₀ (the conditional mean)."""
+
+    def __init__(self, schedule):
+        self.inner, self.clip_x0 = DDIMSampler(schedule, steps=1), True
+
+    def __call__(self, denoise, noise, generator=None, callback=None):
+        inner = copy.copy(self.inner)
+        inner.clip_x0 = self.clip_x0  # sample_window moves the clip into the denoiser for a residual decoder
+        return inner(denoise, torch.zeros_like(noise), generator=generator, callback=callback)
+
+
+def frames_per_second(pipe: VideoDecodingPipeline, tokens: torch.Tensor) -> float:
+    """25 Hz output frames per second of the whole §5.2 path (decode + two doublings) for tokens (b, N, h, w)."""
+    start = time.perf_counter()
+    video = pipe(tokens, upsample=2, generator=torch.Generator().manual_seed(0))
+    return video.quadruple.shape[0] * video.quadruple.shape[1] / (time.perf_counter() - start)
 
 
 def denoiser_steps_per_second(net: VideoDecoder, frames: int, repeats: int = 3) -> float:
@@ -82,13 +173,21 @@ def write_strip(path: Path, rows: list[torch.Tensor]) -> None:
         tmp.write_bytes(png.tobytes())
 
 
+def sampler_for(name: str, schedule):
+    if name == "mean":
+        return MeanStart(schedule)
+    cls, steps = SAMPLERS[name]
+    return cls(schedule, steps=steps)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ckpt", required=True)
-    parser.add_argument("--clips", type=int, default=4)
+    parser.add_argument("--clips", type=int, default=8)
     parser.add_argument("--frames", type=int, default=12, help="N frames at 6.25 Hz (12: two decoder windows)")
     parser.add_argument("--out", default=None, help="default: <run dir>/eval")
-    parser.add_argument("--samplers", default=",".join(SAMPLERS))
+    parser.add_argument("--samplers", default=DEFAULT_SAMPLERS, help=f"comma-separated, of {','.join(SAMPLERS)}")
+    parser.add_argument("--upsample-steps", type=int, default=10, help="DDIM steps of the 25 Hz path")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.manual_seed(args.seed)
@@ -102,23 +201,25 @@ def main() -> None:
     truth = full[:, ::4]  # 6.25 Hz, N frames
     tokens = module.tokenize(truth)
     framewise = module.render_tokens(tokens)
-    results = {"clips": args.clips, "frames_6_25hz": args.frames, "framewise_tokenizer": scores(framewise, truth), "samplers": {}}
+    baseline = per_clip(framewise, truth)
+    results = {"clips": args.clips, "frames_6_25hz": args.frames, "framewise_tokenizer": scores(framewise, truth),
+               "samplers": {}}
     decoded = {}
     for name in args.samplers.split(","):
-        cls, steps = SAMPLERS[name]
-        pipe = VideoDecodingPipeline(net, schedule, cls(schedule, steps=steps), module.frames, module.context_frames,
-                                    render_tokens=module.render_tokens)
+        pipe = VideoDecodingPipeline(net, schedule, sampler_for(name, schedule), module.frames, module.context_frames,
+                                     render_tokens=module.render_tokens)
         start = time.perf_counter()
         decoded[name] = pipe.decode(tokens, torch.Generator().manual_seed(args.seed))
-        results["samplers"][name] = {**scores(decoded[name], truth), "seconds": time.perf_counter() - start}
-        print(name, results["samplers"][name], flush=True)
+        results["samplers"][name] = {**scores(decoded[name], truth, baseline), "seconds": time.perf_counter() - start}
+        print(name, json.dumps(results["samplers"][name]), flush=True)
     best = decoded.get("ddim50", next(iter(decoded.values())))
-    pipe = VideoDecodingPipeline(net, schedule, DDIMSampler(schedule, steps=20), module.frames, module.context_frames,
-                                render_tokens=module.render_tokens)
+    pipe = VideoDecodingPipeline(net, schedule, DDIMSampler(schedule, steps=args.upsample_steps), module.frames,
+                                 module.context_frames, render_tokens=module.render_tokens)
     up = pipe(tokens, upsample=2, generator=torch.Generator().manual_seed(args.seed))
     inserted = torch.ones(up.quadruple.shape[1], dtype=torch.bool)
     inserted[::4] = False
     results["upsampling"] = {
+        "steps": args.upsample_steps,
         "frames": [up.base.shape[1], up.double.shape[1], up.quadruple.shape[1]],
         "psnr_25hz_all": scores(up.quadruple, full)["psnr"],
         "psnr_25hz_interpolated_only": scores(up.quadruple[:, inserted], full[:, inserted])["psnr"],
@@ -126,24 +227,32 @@ def main() -> None:
     }
     mid = VideoDecoder(vocab_size=net.vocab_size, token_grid=net.token_grid, image_size=net.image_size, frames=module.frames,
                        channels=64, channel_mults=(1, 2, 4), res_blocks=2, attention_levels=(2,),
-                       render_tokens=net.render_tokens)
-    results["denoiser_steps_per_s"] = {
-        "tiny": denoiser_steps_per_second(net, module.frames),
-        "mid": denoiser_steps_per_second(mid.eval(), module.frames),
+                       render_tokens=net.render_tokens, residual=net.residual, residual_scale=net.residual_scale)
+    one_clip = tokens[:1]
+    results["speed"] = {
         "tiny_params": sum(p.numel() for p in net.parameters()),
         "mid_params": sum(p.numel() for p in mid.parameters()),
+        "denoiser_steps_per_s": {"tiny": denoiser_steps_per_second(net, module.frames),
+                                 "mid": denoiser_steps_per_second(mid.eval(), module.frames)},
+        "frames_25hz_per_s": {size: frames_per_second(VideoDecodingPipeline(
+            model, schedule, DDIMSampler(schedule, steps=args.upsample_steps), module.frames, module.context_frames,
+            render_tokens=module.render_tokens), one_clip) for size, model in (("tiny", net), ("mid", mid.eval()))},
+        "threads": torch.get_num_threads(),
     }
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "results.json", json.dumps(results, indent=2))
+    atomic_write_text(out / "results.md", table(results))
+    plot_steps(out / "steps.png", results)
     write_strip(out / "decoder_strip.png", [truth, framewise, best])
     rec = rr.RecordingStream("gaia_app_eval_video_decoder")
     rec.save(str(out / "eval.rrd"))
-    for name, video in (("truth", truth), ("framewise", framewise), ("decoder", best)):
+    for name, video in (("truth", truth), ("framewise", framewise), *decoded.items()):
         for t in range(video.shape[1]):
             rec.set_time("frame", sequence=t)
             rec.log(f"eval/{name}", rr.Image(to_hwc_uint8(video[0, t])))
     rec.flush()
-    print(json.dumps(results, indent=2))
+    print(table(results))
+    print(json.dumps(results["upsampling"], indent=2), json.dumps(results["speed"], indent=2))
 
 
 if __name__ == "__main__":

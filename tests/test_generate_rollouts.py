@@ -292,3 +292,25 @@ def test_staging_replaces_the_folders_of_an_earlier_run_and_leaves_them_on_error
         raise RuntimeError("a failed run")
     assert [p.name for p in (tmp_path / "commands").iterdir()] == ["second.png"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["commands", "showcase.md"]  # no staging folder left
+
+
+def test_decoder_blend_config_reaches_the_decoder_and_changes_its_frames(checkpoints, tmp_path: Path) -> None:
+    """decoder_blend (GAIA-1 §5.2 eq. 4) from generate.py's config: p = 1 blends every step, p = 0 none."""
+    from gaia_app.tasks.rollout import load_pipeline
+
+    def decoded(probability: float) -> tuple[object, torch.Tensor]:
+        cfg = compose_config("generate", [*(f"{k}={v}" for k, v in checkpoints.items()), "decoder_steps=2",
+                                          f"decoder_blend.probability={probability}", "extras.print_config=false",
+                                          *SIZE], tmp_path / str(probability))
+        decoder = load_pipeline(cfg).decoder
+        # one training step leaves the zero-initialised temporal layers near zero: give them weight, so the image
+        # denoiser (temporal layers off) and the video one differ as they do in a trained decoder
+        for layer in decoder.net.temporal_layers():
+            torch.nn.init.normal_(layer.out.weight, std=0.5, generator=torch.Generator().manual_seed(1))
+        tokens = torch.randint(0, 512, (1, 7, 8, 12), generator=torch.Generator().manual_seed(0))
+        return decoder.blend, decoder.decode(tokens, torch.Generator().manual_seed(0))
+
+    blend, blended = decoded(1.0)
+    none, plain = decoded(0.0)
+    assert none is None and (blend.probability, blend.weight) == (1.0, 0.5)
+    assert (blended - plain).abs().max() > 1e-4

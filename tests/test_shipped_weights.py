@@ -211,3 +211,28 @@ def test_generation_from_checkpoints_builds_no_lightning_module(checkpoints, mon
                                               checkpoints["decoder_ckpt"], decoder_steps=2)
     assert pipeline.decoder is not None and pipeline.image_size == (32, 48)
     assert not pipeline.world_model.training and not pipeline.decoder.net.training
+
+
+def test_weights_with_a_video_decoder_decode_with_its_ema_weights(checkpoints, tmp_path: Path) -> None:  # noqa: F811
+    """mode=export with decoder_ckpt= adds video_decoder.{safetensors,yaml} (the EMA weights); weights= runs decode
+    with it unless video_decoder=false, and the controllability protocol never does."""
+    from gaia_app.tasks.rollout import load_pipeline
+
+    results = run(checkpoints, tmp_path / "export", "mode=export", f"out_dir={tmp_path / 'weights'}")
+    assert results["video_decoder"]["bytes"] > 0
+    folder = tmp_path / "weights"
+    info = yaml.safe_load((folder / "video_decoder.yaml").read_text())["info"]
+    assert info == {"frames": 7, "context_frames": 2, "timesteps": 1000, "steps": 50}
+    trained = Gaia1Pipeline.from_checkpoints(*(checkpoints[k] for k in ("tokenizer_ckpt", "world_model_ckpt",
+                                                                         "decoder_ckpt")), decoder_steps=2)
+    rebuilt = Gaia1Pipeline.from_weights(folder, decoder_steps=2)
+    for (name, x), (_, y) in zip(trained.decoder.net.state_dict().items(), rebuilt.decoder.net.state_dict().items(),
+                                 strict=True):
+        torch.testing.assert_close(y, x.to(torch.float16).to(x.dtype), msg=name)
+    tokens = torch.randint(0, 512, (1, 7, 8, 12), generator=torch.Generator().manual_seed(0))
+    decoded = [pipe.decoder.decode(tokens, torch.Generator().manual_seed(0)) for pipe in (trained, rebuilt)]
+    torch.testing.assert_close(decoded[1], decoded[0], atol=5e-2, rtol=0)
+    assert Gaia1Pipeline.from_weights(folder, video_decoder=False).decoder is None
+    cfg = compose_config("generate", [f"weights={folder}", "video_decoder=false", "extras.print_config=false", *SIZE],
+                         tmp_path / "run")
+    assert load_pipeline(cfg).decoder is None and load_pipeline(cfg, video_decoder=True).decoder is not None

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gaia_app.pipelines.gaia1_video_decoder import backward_windows, forward_windows, interpolation_windows
+from gaia_app.pipelines.gaia1_video_decoder import (VideoDecodingPipeline, backward_windows, forward_windows, full_length,
+                                                    interpolation_windows)
 
 
 @pytest.mark.parametrize("n", [1, 5, 7, 8, 12, 13, 26])
@@ -24,6 +25,40 @@ def test_backward_windows_cover_every_frame_with_two_overlapping_context_frames(
 def test_forward_windows_mirror_backward() -> None:
     assert forward_windows(12, 7, 2) == [(0, 7), (5, 12)]
     assert backward_windows(12, 7, 2) == [(5, 12), (0, 7)]
+
+
+@pytest.mark.parametrize("order", [backward_windows, forward_windows])
+@pytest.mark.parametrize("n", [7, 8, 12, 13, 14, 26])
+def test_full_length_windows_hold_t_prime_frames_and_only_widen_over_decoded_ones(order, n: int) -> None:
+    windows = full_length(order(n, 7, 2), n, 7)
+    covered = torch.zeros(n, dtype=torch.bool)
+    for i, (start, stop) in enumerate(windows):
+        assert stop - start == 7 and 0 <= start and stop <= n
+        if i:  # every frame beyond the window's new ones was decoded before (≥ 2 context frames)
+            assert int(covered[start:stop].sum()) >= 2
+        covered[start:stop] = True
+    assert covered.all()
+    assert full_length([(0, 4)], 3, 7) == [(0, 4)]  # too few frames to widen: decode() pads instead
+
+
+@pytest.mark.parametrize("n", [3, 7, 14])
+def test_decode_feeds_every_window_t_prime_frames(n: int) -> None:
+    from gaia_app.models.gaia1.video_decoder import VideoDecoder
+
+    net = VideoDecoder(vocab_size=8, token_grid=(2, 2), image_size=(8, 8), frames=7, channels=8, channel_mults=(1,),
+                       attention_levels=(), heads=1, token_dim=8)
+    pipe = VideoDecodingPipeline(net, schedule=None, sampler=None)
+    seen = []
+
+    def window(tokens, token_mask, context, context_mask, generator=None):
+        seen.append((tokens.shape[1], int(context_mask[0].sum())))
+        return torch.full_like(context, float(len(seen)))
+
+    pipe.window = window
+    tokens = torch.arange(n)[None, :, None, None].expand(1, n, 2, 2)
+    frames = pipe.decode(tokens)
+    assert frames.shape == (1, n, 3, 8, 8) and all(length == 7 for length, _ in seen)
+    assert seen[0][1] == 0 and all(context >= 2 for _, context in seen[1:])
 
 
 @pytest.mark.parametrize("n", [2, 4, 7, 13])

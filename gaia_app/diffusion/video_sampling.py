@@ -6,11 +6,12 @@ Legend: b batch, t frames in the window, h × w token grid, H × W image size; i
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 
 import torch
 
-from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule
+from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule, v_from_x0, x0_from_v
 from gaia_app.diffusion.samplers import Denoiser, ImageVideoBlend
 from gaia_app.models.gaia1.video_decoder import VideoDecoder
 
@@ -29,14 +30,19 @@ def sample_window(net: VideoDecoder, schedule: CosineNoiseSchedule, sampler: Cal
     training, so the decoder never sees its own (never trained) guess for them.
     """
     given = context_mask[:, :, None, None, None]
-    base = net.residual_base(rendered, token_mask, context)  # a residual decoder samples frames − base
-    clean = net.to_residual(context, base)
+    frame = net.residual_frame(rendered, token_mask, context)  # a residual decoder samples (frames − base) / scale
+    clean = frame.encode(context)
+    sampler, clip = pixel_clipping(sampler)
 
     def denoiser(temporal: bool) -> Denoiser:
         def denoise(x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
             fresh = torch.randn(context.shape, generator=generator, device=context.device)
             x = torch.where(given, schedule.add_noise(clean, fresh, step), x)
-            return net(x, step, tokens, token_mask, clean, context_mask, temporal=temporal, rendered=rendered)
+            v = net(x, step, tokens, token_mask, clean, context_mask, temporal=temporal, rendered=rendered)
+            if not clip:
+                return v
+            alpha, sigma = schedule.alpha_sigma(step)
+            return v_from_x0(x, frame.clip(x0_from_v(x, v, alpha, sigma)), alpha, sigma)
         return denoise
 
     denoise = denoiser(True)
@@ -44,6 +50,19 @@ def sample_window(net: VideoDecoder, schedule: CosineNoiseSchedule, sampler: Cal
         denoise = blend.denoiser(denoise, denoiser(False), generator)
     noise = torch.randn(context.shape, generator=generator, device=context.device)
     frames_callback = None if callback is None else (
-        lambda i, t, x, x0_pred: callback(i, t, x, net.from_residual(x0_pred, base)))
+        lambda i, t, x, x0_pred: callback(i, t, x, frame.decode(x0_pred)))
     out = sampler(denoise, noise, generator=generator, callback=frames_callback)
-    return torch.where(given, context, net.from_residual(out, base).clamp(-1, 1))
+    return torch.where(given, context, frame.decode(out).clamp(-1, 1))
+
+
+def pixel_clipping(sampler: Callable) -> tuple[Callable, bool]:
+    """(sampler without its own x̂₀ clipping, whether to clip x̂₀ in pixel space instead).
+
+    A sampler clips x̂₀ to [−1, 1], the range of pixels; a residual decoder's variable (frames − base) / scale
+    has per-pixel bounds instead, so the clip moves into the denoiser (`ResidualFrame.clip`), where it is the
+    same clip for a decoder that diffuses frames."""
+    if not getattr(sampler, "clip_x0", False):
+        return sampler, False
+    unclipped = copy.copy(sampler)
+    unclipped.clip_x0 = False
+    return unclipped, True

@@ -17,6 +17,7 @@ is frozen, never optimised, and not duplicated into this module's checkpoints.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -31,6 +32,17 @@ from gaia_app.lit.checkpoint import load_module
 from gaia_app.models.gaia1.decoder_tasks import TASKS, DecoderTask, TaskSampler, drop_tokens, make_task
 from gaia_app.models.gaia1.tokenizer import ImageTokenizer
 from gaia_app.models.gaia1.video_decoder import VideoDecoder
+
+
+def load_tokenizer(source: str) -> ImageTokenizer:
+    """The GAIA-1 image tokenizer of a training checkpoint (`.ckpt`), or of a shipped weights folder (a folder
+    with tokenizer.safetensors, or a name under gaia_app/weights such as "gaia1"), so that a decoder can be trained
+    on the tokens of the shipped reference weights."""
+    from gaia_app.pipelines.shipped import load_nets, shipped_folder
+
+    if Path(source).is_file():
+        return load_module(source).tokenizer
+    return load_nets(shipped_folder(source), "tokenizer")[0]["net"]
 
 
 class VideoDecoderModule(GaiaModule):
@@ -88,8 +100,9 @@ class VideoDecoderModule(GaiaModule):
         """The frozen image tokenizer, loaded from `tokenizer_ckpt` on first use."""
         if "tokenizer" not in self.frozen:
             if not self.tokenizer_ckpt:
-                raise ValueError("the video decoder needs model.tokenizer_ckpt=<trained GAIA-1 tokenizer checkpoint>")
-            self.frozen["tokenizer"] = load_module(self.tokenizer_ckpt).tokenizer.eval().requires_grad_(False)
+                raise ValueError("the video decoder needs model.tokenizer_ckpt=<trained GAIA-1 tokenizer checkpoint, "
+                                 "or a shipped weights folder such as gaia1>")
+            self.frozen["tokenizer"] = load_tokenizer(self.tokenizer_ckpt).eval().requires_grad_(False)
         tokenizer = self.frozen["tokenizer"].to(self.device)
         self.frozen["tokenizer"] = tokenizer
         return tokenizer
@@ -159,7 +172,7 @@ class VideoDecoderModule(GaiaModule):
         b = x0.shape[0]
         token_mask, context_mask = self.masks(task, tokens, dropout)
         rendered = self.rendered(net, tokens)
-        x0 = net.to_residual(x0, net.residual_base(rendered, token_mask, x0))  # x0 itself unless net.residual
+        x0 = net.residual_frame(rendered, token_mask, x0).encode(x0)  # x0 itself unless net.residual
         step = self.schedule.sample_timesteps(b, x0.device)
         noise = torch.randn_like(x0)
         x_t = self.schedule.add_noise(x0, noise, step)

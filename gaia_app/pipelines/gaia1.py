@@ -24,6 +24,7 @@ from einops import rearrange
 from gaia_app.diffusion.ar_sampling import AutoregressiveSampler
 from gaia_app.diffusion.guidance import ClassifierFreeGuidance
 from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule
+from gaia_app.diffusion.samplers import DDIMSampler, ImageVideoBlend
 from gaia_app.eval.token_perplexity import fit_window, token_log_perplexity
 from gaia_app.models.gaia1.tokenizer import ImageTokenizer
 from gaia_app.models.gaia1.world_model import STREAMS, Conditions, WorldModel
@@ -94,11 +95,13 @@ class Gaia1Pipeline:
     @classmethod
     def from_checkpoints(cls, tokenizer: str | Path, world_model: str | Path, decoder: str | Path | None = None,
                          image_size: tuple[int, int] | None = None, device: str = "cpu",
-                         decoder_steps: int | None = None, **kwargs) -> Gaia1Pipeline:
+                         decoder_steps: int | None = None, decoder_blend: ImageVideoBlend | None = None,
+                         **kwargs) -> Gaia1Pipeline:
         """Load the three components' nets (pipelines/checkpoint_nets.py: weights-only, checked configs, no
         LightningModule); `image_size` defaults to the decoder's (required without one).
 
         decoder_steps: steps of the decoder run's own sampler (DDIM, §5.2: 50), None for its default.
+        decoder_blend: eq. 4 image/video blend of the decoder's steps (§5.2: p = 0.25, w = 0.5), None for none.
         kwargs: the constructor's sampler, guidance, upsample and rate.
         """
         from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
@@ -110,24 +113,37 @@ class Gaia1Pipeline:
             nets, config = checkpoint_nets(decoder, "video_decoder", "decoder_ckpt", device)
             net = nets["net"]
             image_size = image_size or tuple(net.image_size)
-            video = VideoDecodingPipeline(net, *decoder_sampling(config, decoder_steps), progress=True,
+            video = VideoDecodingPipeline(net, *decoder_sampling(config, decoder_steps), blend=decoder_blend, progress=True,
                                           render_tokens=_renderer(tok) if net.render_tokens else None)
         if image_size is None:
             raise ValueError("image_size=(H, W) is needed when no decoder checkpoint gives it")
         return cls(tok, wm["net"], image_size, wm.get("text_encoder"), decoder=video, **kwargs)
 
     @classmethod
-    def from_weights(cls, folder: str | Path, device: str = "cpu", **kwargs) -> Gaia1Pipeline:
+    def from_weights(cls, folder: str | Path, device: str = "cpu", video_decoder: bool = True,
+                     decoder_steps: int | None = None, decoder_blend: ImageVideoBlend | None = None, upsample: int = 2,
+                     **kwargs) -> Gaia1Pipeline:
         """Tokenizer and world model from a shipped weights folder (gaia_app/pipelines/shipped.py), e.g.
-        gaia_app/weights/gaia1; frames are decoded one by one by the tokenizer. kwargs: sampler, guidance."""
-        from gaia_app.pipelines.shipped import load_nets
+        gaia_app/weights/gaia1, and its video decoder when it has one and `video_decoder` (else frames are decoded
+        one by one by the tokenizer at the world model's rate). decoder_steps: DDIM steps (None: the decoder run's);
+        decoder_blend, upsample: as in from_checkpoints. kwargs: sampler, guidance."""
+        from gaia_app.pipelines.shipped import load_nets, weight_files
 
         tokenizer, tokenizer_info = load_nets(folder, "tokenizer", device)
         world_model, world_info = load_nets(folder, "world_model", device)
         if "image_size" not in tokenizer_info or "rate" not in world_info:
             raise ValueError(f"{folder}: tokenizer.yaml needs info.image_size and world_model.yaml info.rate")
+        video = None
+        if video_decoder and weight_files(folder, "video_decoder")[0].exists():
+            nets, info = load_nets(folder, "video_decoder", device)
+            schedule = CosineNoiseSchedule(int(info["timesteps"]))
+            sampler = DDIMSampler(schedule, steps=decoder_steps or int(info["steps"]))
+            video = VideoDecodingPipeline(nets["net"], schedule, sampler, int(info["frames"]), int(info["context_frames"]),
+                                          blend=decoder_blend, progress=True,
+                                          render_tokens=_renderer(tokenizer["net"]) if nets["net"].render_tokens else None)
         return cls(tokenizer["net"], world_model["net"], tuple(tokenizer_info["image_size"]),
-                   world_model.get("text_encoder"), upsample=0, rate=float(world_info["rate"]), **kwargs)
+                   world_model.get("text_encoder"), decoder=video, upsample=upsample, rate=float(world_info["rate"]),
+                   **kwargs)
 
     def check_layout(self) -> None:
         """Tokenizer, world model and decoder must agree on the token grid and the vocabulary."""

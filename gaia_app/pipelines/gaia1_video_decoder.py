@@ -46,6 +46,18 @@ def backward_windows(n: int, frames: int, context: int) -> list[tuple[int, int]]
     return windows
 
 
+def full_length(windows: list[tuple[int, int]], n: int, frames: int) -> list[tuple[int, int]]:
+    """Each window widened to `frames` (when n ≥ frames) over frames decoded before it: the last backward window
+    (or forward one) would otherwise be shorter than T' and show the decoder temporal positions it was never
+    trained to generate at; the extra frames become context."""
+    widened = []
+    for start, stop in windows:
+        if stop - start < frames <= n:
+            start, stop = (0, frames) if start == 0 else (stop - frames, stop)
+        widened.append((start, stop))
+    return widened
+
+
 def forward_windows(n: int, frames: int, context: int) -> list[tuple[int, int]]:
     """The mirror image of `backward_windows`: the first `frames`, then onwards with `context` past frames."""
     return [(n - stop, n - start) for start, stop in backward_windows(n, frames, context)]
@@ -92,13 +104,21 @@ class VideoDecodingPipeline:
                              self.blend, generator, rendered=rendered)
 
     def decode(self, tokens: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-        """tokens (b, N, h, w) → frames (b, N, 3, H, W) at the tokens' rate (GAIA-1 §5.2 steps 1-3)."""
-        b, n = tokens.shape[:2]
+        """tokens (b, N, h, w) → frames (b, N, 3, H, W) at the tokens' rate (GAIA-1 §5.2 steps 1-3).
+
+        Every window holds T' frames: a sequence shorter than T' is padded with copies of its last frame's tokens
+        (decoded, then dropped), and the last window is widened over frames decoded before (`full_length`)."""
+        n = tokens.shape[1]
+        if n < self.frames:
+            padding = tokens[:, -1:].expand(-1, self.frames - n, -1, -1)
+            return self.decode(torch.cat([tokens, padding], dim=1), generator)[:, :n]
+        b = tokens.shape[0]
         height, width = self.net.image_size
         frames = tokens.new_zeros(b, n, 3, height, width, dtype=torch.float32)
         done = torch.zeros(n, dtype=torch.bool)
         order = backward_windows if self.backward else forward_windows
-        for start, stop in tqdm(order(n, self.frames, self.context), desc="decode", disable=not self.progress):
+        windows = full_length(order(n, self.frames, self.context), n, self.frames)
+        for start, stop in tqdm(windows, desc="decode", disable=not self.progress):
             context_mask = done[start:stop].to(tokens.device).expand(b, -1)
             frames[:, start:stop] = self.window(tokens[:, start:stop], ~context_mask, frames[:, start:stop],
                                                 context_mask, generator)

@@ -61,11 +61,13 @@ def restore_hint(path: Path) -> str:
 
 
 def export_component(checkpoint: Mapping[str, Any], folder: str | Path, component: str, nets: Sequence[str],
-                     info: Mapping[str, Any], dtype: str = "float16") -> dict[str, Any]:
+                     info: Mapping[str, Any], dtype: str = "float16",
+                     prefixes: Mapping[str, str] | None = None) -> dict[str, Any]:
     """Write `<component>.safetensors` + `.yaml` from a training checkpoint dict (`state_dict`, `hyper_parameters`).
 
     nets: keys of the module config (`model_cfg.<key>`) whose nets inference needs; their tensors are the state
-    dict entries under `<key>.`. Returns {"parameters": count, "bytes": size of the safetensors file}.
+    dict entries under `<key>.`, or under `prefixes[key]` (e.g. the video decoder's EMA copy, "ema.module."), stored
+    as `<key>.`. Returns {"parameters": count, "bytes": size of the safetensors file}.
     """
     from safetensors.torch import save as save_tensors
 
@@ -81,9 +83,11 @@ def export_component(checkpoint: Mapping[str, Any], folder: str | Path, componen
         if model_cfg.get(key) is None:
             raise KeyError(f"checkpoint's model_cfg has no '{key}' net to export")
         configs[key] = OmegaConf.to_container(model_cfg[key], resolve=True)
-        part = {name: value for name, value in checkpoint["state_dict"].items() if name.startswith(f"{key}.")}
+        prefix = (prefixes or {}).get(key, f"{key}.")
+        part = {f"{key}.{name[len(prefix):]}": value for name, value in checkpoint["state_dict"].items()
+                if name.startswith(prefix)}
         if not part:
-            raise KeyError(f"checkpoint's state_dict has no tensors under '{key}.'")
+            raise KeyError(f"checkpoint's state_dict has no tensors under '{prefix}'")
         state.update({name: stored(value, STORAGE_TYPES[dtype]) for name, value in part.items()})
     data = save_tensors(state)
     weights, config = weight_files(folder, component)

@@ -335,7 +335,8 @@ def cell_accuracy(row: dict[str, float] | None) -> str:
 
 def controllability(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Run the protocol of the module docstring; returns the results (also written to the run dir)."""
-    pipeline = load_pipeline(cfg)
+    # the probes read frames decoded one by one by the tokenizer (as when they were checked on real frames)
+    pipeline = load_pipeline(cfg, video_decoder=False)
     t = cfg.context.frames + future_frames(cfg.seconds, pipeline.rate, at_least=2)
     dynamics, scene, probe_info = probes_for(cfg, pipeline, t, Path(run_dir))
     generator = torch.Generator(device=pipeline.device).manual_seed(int(cfg.seed))

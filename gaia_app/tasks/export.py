@@ -4,7 +4,8 @@
         controllability.probes=<probes folder> out_dir=gaia_app/weights/gaia1
 
 writes tokenizer.{safetensors,yaml}, world_model.{safetensors,yaml} and probes/ (the controllability probes the
-weights were measured with, so `weights=` runs never retrain them). Only the nets inference needs are kept: the
+weights were measured with, so `weights=` runs never retrain them); with decoder_ckpt= also
+video_decoder.{safetensors,yaml} (its EMA weights), which `weights=` runs then decode with. Only the nets inference needs are kept: the
 tokenizer without its discriminator, the world model with its text encoder.
 
     python generate.py mode=export weights=gaia1 world_model_ckpt=<world model last.ckpt> out_dir=my_weights
@@ -52,6 +53,8 @@ def export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     results["world_model"] = export_component(world_model, out, "world_model", nets,
                                               {"rate": float(cfg.rate)},
                                               cfg.export_dtype)
+    if cfg.get("decoder_ckpt"):
+        results["video_decoder"] = export_decoder(read_checkpoint(cfg.decoder_ckpt), out, cfg.export_dtype)
     probes = cfg.controllability.probes or (source / "probes" if source is not None else None)
     if probes:
         load_probes(probes, tuple(image_size), float(cfg.rate))  # refuses probes of another size
@@ -60,3 +63,15 @@ def export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             shutil.copyfile(Path(probes) / name, out / "probes" / name)
         results["probes"] = str(out / "probes")
     return results
+
+
+def export_decoder(checkpoint: dict[str, Any], out: Path, dtype: str) -> dict[str, Any]:
+    """video_decoder.{safetensors,yaml} from a video decoder checkpoint: its EMA weights (what generation samples
+    with, GAIA-1 §4.3) and, as info, what the decoding pipeline needs (T', context frames, diffusion timesteps, the
+    run's sampler steps)."""
+    model_cfg = checkpoint["hyper_parameters"]["model_cfg"]
+    if not str(model_cfg.get("_target_", "")).endswith("VideoDecoderModule"):
+        raise ValueError(f"decoder_ckpt holds a {model_cfg.get('_target_')} checkpoint, expected a VideoDecoderModule")
+    info = {"frames": int(model_cfg["frames"]), "context_frames": int(model_cfg["context_frames"]),
+            "timesteps": int(model_cfg["schedule"].get("timesteps", 1000)), "steps": int(model_cfg["sampler"]["steps"])}
+    return export_component(checkpoint, out, "video_decoder", ["net"], info, dtype, prefixes={"net": "ema.module."})

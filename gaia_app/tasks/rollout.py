@@ -26,6 +26,7 @@ from omegaconf import DictConfig
 
 from gaia_app.data.transforms import to_uint8
 from gaia_app.data.video_io import write_video
+from gaia_app.diffusion.samplers import ImageVideoBlend
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline, Gaia1Rollout
 from gaia_app.pipelines.gaia1_inputs import (MODES, ContextClip, build_conditioning, context_for, describe_actions,
                                               future_frames)
@@ -54,9 +55,18 @@ def staging(run_dir: Path) -> Iterator[Path]:
         shutil.rmtree(stage, ignore_errors=True)
 
 
-def load_pipeline(cfg: DictConfig) -> Gaia1Pipeline:
+def decoder_blend(cfg: DictConfig) -> ImageVideoBlend | None:
+    """The eq. 4 image/video blend of `cfg.decoder_blend` (GAIA-1 §5.2), None when its probability is 0."""
+    blend = cfg.get("decoder_blend")
+    if blend is None or float(blend.probability) == 0:
+        return None
+    return ImageVideoBlend(float(blend.probability), float(blend.weight))
+
+
+def load_pipeline(cfg: DictConfig, video_decoder: bool | None = None) -> Gaia1Pipeline:
     """The three checkpoints of `cfg` (decoder optional), or its shipped `weights`, with the sampler and guidance
-    of `cfg`."""
+    of `cfg`. video_decoder: whether `weights` runs decode with the folder's video decoder (None: `cfg.video_decoder`;
+    the controllability protocol passes False, as its probes are measured on frames decoded by the tokenizer)."""
     guided = cfg.guidance.scale > 0 or (cfg.guidance.get("text_scale") or 0) > 0
     guidance = instantiate(cfg.guidance) if guided else None
     if cfg.negative_prompt and guidance is None:
@@ -65,14 +75,18 @@ def load_pipeline(cfg: DictConfig) -> Gaia1Pipeline:
         given = [key for key in ("tokenizer_ckpt", "world_model_ckpt", "decoder_ckpt") if cfg.get(key)]
         if given:
             raise ValueError(f"weights={cfg.weights} replaces the checkpoints; drop {', '.join(given)}")
-        return Gaia1Pipeline.from_weights(shipped_folder(cfg.weights), device=cfg.device,
-                                          sampler=instantiate(cfg.token_sampler), guidance=guidance)
+        use_decoder = bool(cfg.get("video_decoder", True)) if video_decoder is None else video_decoder
+        return Gaia1Pipeline.from_weights(shipped_folder(cfg.weights), device=cfg.device, video_decoder=use_decoder,
+                                          decoder_steps=cfg.decoder_steps, decoder_blend=decoder_blend(cfg),
+                                          upsample=cfg.upsample, sampler=instantiate(cfg.token_sampler),
+                                          guidance=guidance)
     for key in ("tokenizer_ckpt", "world_model_ckpt"):
         if not cfg.get(key):
             raise ValueError(f"mode={cfg.mode} needs {key}=<checkpoint> (and optionally decoder_ckpt=), or weights=")
     image_size = (cfg.data.height, cfg.data.width)
     return Gaia1Pipeline.from_checkpoints(cfg.tokenizer_ckpt, cfg.world_model_ckpt, cfg.decoder_ckpt,
                                           image_size=image_size, device=cfg.device, decoder_steps=cfg.decoder_steps,
+                                          decoder_blend=decoder_blend(cfg),
                                           sampler=instantiate(cfg.token_sampler), guidance=guidance,
                                           upsample=cfg.upsample, rate=cfg.rate)
 
