@@ -8,7 +8,8 @@ Decodes the ground-truth tokens of held-out clips (N frames at 6.25 Hz, the vali
               decoder replaces and, for a residual decoder, its input
   ddim<k>     the §5.2 procedure (backward AR windows of T' = 7 with 2 context frames), EMA weights, k DDIM steps
               (default 1, 5, 10, 20, 50; DDIM 1 is the decoder's one-step x̂₀ from pure noise)
-  mean        the one-step x̂₀ from x_T = 0 instead of noise: the decoder's estimate of the conditional mean
+  zero        the one-step x̂₀ from x_T = 0 instead of noise (an input the decoder never saw in training)
+  mean<k>     the conditional-mean estimate: one-step x̂₀ averaged over k noise draws (OneStepMeanSampler)
   dpm<k>      DPM-Solver++(2M) with k steps, if asked (--samplers)
 and reports, per row, PSNR against the true frames and temporal flicker (mean |Δdecoded − Δtrue| of consecutive
 frames, gaia_app.eval.metrics.temporal_flicker; lower is steadier), each a mean over clips with a 95 % interval,
@@ -35,7 +36,7 @@ from omegaconf import OmegaConf
 
 import gaia_app.utils.resolvers  # noqa: F401
 from gaia_app.data.synthetic import SyntheticClipDataset
-from gaia_app.diffusion.samplers import DDIMSampler, DPMSolverSampler
+from gaia_app.diffusion.samplers import DDIMSampler, DPMSolverSampler, OneStepMeanSampler
 from gaia_app.eval.metrics import psnr, temporal_flicker
 from gaia_app.lit.checkpoint import load_module
 from gaia_app.models.gaia1.video_decoder import VideoDecoder
@@ -43,16 +44,17 @@ from gaia_app.pipelines.gaia1_video_decoder import VideoDecodingPipeline
 from gaia_app.utils.run_dir import atomic_path, atomic_write_text
 from gaia_app.viz.media import to_hwc_uint8
 
-SAMPLERS = {"ddim1": (DDIMSampler, 1), "ddim5": (DDIMSampler, 5), "ddim10": (DDIMSampler, 10),
-            "ddim20": (DDIMSampler, 20), "ddim50": (DDIMSampler, 50), "mean": (DDIMSampler, 1),
-            "dpm10": (DPMSolverSampler, 10), "dpm20": (DPMSolverSampler, 20)}
-DEFAULT_SAMPLERS = "ddim1,ddim5,ddim10,ddim20,ddim50,mean"
+# rows: ddim<k> (k DDIM steps), dpm<k> (DPM-Solver++ k steps), mean<k> (OneStepMeanSampler, k noise draws),
+# zero (x̂0 from x_T = 0, one evaluation)
+SAMPLERS = {"ddim": DDIMSampler, "dpm": DPMSolverSampler, "mean": OneStepMeanSampler}
+DEFAULT_SAMPLERS = "ddim1,ddim5,ddim10,ddim20,ddim50,zero,mean4,mean16"
 
 
-def held_out_clips(run_cfg, clips: int, frames: int) -> torch.Tensor:
-    """(clips, 4·(frames − 1) + 1, 3, H, W) in [-1, 1]: synthetic clips from the validation seed at 25 Hz."""
+def held_out_clips(run_cfg, clips: int, frames: int, seed: int | None = None) -> torch.Tensor:
+    """(clips, 4·(frames − 1) + 1, 3, H, W) in [-1, 1]: synthetic clips at 25 Hz from the validation seed, or from
+    `seed` (a world neither training nor any choice made on the validation clips has seen)."""
     src = run_cfg.data.val_source
-    ds = SyntheticClipDataset(num_clips=clips, seed=int(src.seed), height=int(src.height), width=int(src.width),
+    ds = SyntheticClipDataset(num_clips=clips, seed=int(src.seed if seed is None else seed), height=int(src.height), width=int(src.width),
                               cameras=list(src.cameras), clip_len=4 * (frames - 1) + 1, fps=25.0)
     video = torch.stack([torch.from_numpy(ds[i].frames[0]) for i in range(clips)])  # (clips, t, 3, H, W) uint8
     return video.float() / 127.5 - 1
@@ -106,7 +108,7 @@ def plot_steps(path: Path, results: dict) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = {int(k[4:]): v for k, v in results["samplers"].items() if k.startswith("ddim")}
+    rows = {int(k[4:]): v for k, v in results["samplers"].items() if k.startswith("ddim") and k[4:].isdigit()}
     if not rows:
         return
     steps = sorted(rows)
@@ -116,8 +118,10 @@ def plot_steps(path: Path, results: dict) -> None:
                     marker="o", capsize=3, label="video decoder, DDIM")
         fw = results["framewise_tokenizer"][metric]
         ax.axhline(fw["mean"], color="k", linestyle="--", label="frame by frame (rendered tokens)")
-        if "mean" in results["samplers"]:
-            ax.axhline(results["samplers"]["mean"][metric]["mean"], color="g", linestyle=":", label="x̂₀ from x_T = 0")
+        for name, style in (("mean16", ":"), ("mean4", "-.")):
+            if name in results["samplers"]:
+                ax.axhline(results["samplers"][name][metric]["mean"], color="g", linestyle=style,
+                           label=f"conditional mean, {name[4:]} draws")
         ax.set_xscale("log")
         ax.set_xlabel("DDIM steps")
         ax.set_ylabel(label)
@@ -128,7 +132,7 @@ def plot_steps(path: Path, results: dict) -> None:
     plt.close(fig)
 
 
-class MeanStart:
+class MeanStart:  # the "zero" row
     """DDIM with one step run from x_T = 0 instead of noise: the deterministic one-step x̂₀ (the conditional mean)."""
 
     def __init__(self, schedule):
@@ -142,8 +146,11 @@ class MeanStart:
 
 def frames_per_second(pipe: VideoDecodingPipeline, tokens: torch.Tensor) -> float:
     """25 Hz output frames per second of the whole §5.2 path (decode + two doublings) for tokens (b, N, h, w)."""
+    pipe(tokens[:, :pipe.frames], upsample=0, generator=torch.Generator().manual_seed(0))  # warm-up
+    synchronize(tokens.device)
     start = time.perf_counter()
     video = pipe(tokens, upsample=2, generator=torch.Generator().manual_seed(0))
+    synchronize(tokens.device)
     return video.quadruple.shape[0] * video.quadruple.shape[1] / (time.perf_counter() - start)
 
 
@@ -151,16 +158,25 @@ def denoiser_steps_per_second(net: VideoDecoder, frames: int, repeats: int = 3) 
     """Forward passes per second on one T'-frame window (batch 1), the unit a sampler step costs."""
     h, w = net.token_grid
     height, width = net.image_size
-    x = torch.randn(1, frames, 3, height, width)
-    args = (torch.full((1,), 500), torch.zeros(1, frames, h, w, dtype=torch.long), torch.ones(1, frames, dtype=torch.bool),
-            torch.zeros_like(x), torch.zeros(1, frames, dtype=torch.bool))
+    device = next(net.parameters()).device
+    x = torch.randn(1, frames, 3, height, width, device=device)
+    args = (torch.full((1,), 500, device=device), torch.zeros(1, frames, h, w, dtype=torch.long, device=device),
+            torch.ones(1, frames, dtype=torch.bool, device=device), torch.zeros_like(x),
+            torch.zeros(1, frames, dtype=torch.bool, device=device))
     rendered = torch.zeros_like(x) if net.render_tokens else None
     with torch.no_grad():
         net(x, *args, rendered=rendered)
+        synchronize(device)
         start = time.perf_counter()
         for _ in range(repeats):
             net(x, *args, rendered=rendered)
+        synchronize(device)
     return repeats / (time.perf_counter() - start)
+
+
+def synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def write_strip(path: Path, rows: list[torch.Tensor]) -> None:
@@ -174,10 +190,13 @@ def write_strip(path: Path, rows: list[torch.Tensor]) -> None:
 
 
 def sampler_for(name: str, schedule):
-    if name == "mean":
+    """A row name of SAMPLERS (ddim50, mean16, zero, …) → its sampler."""
+    if name == "zero":
         return MeanStart(schedule)
-    cls, steps = SAMPLERS[name]
-    return cls(schedule, steps=steps)
+    kind, count = name.rstrip("0123456789"), name[len(name.rstrip("0123456789")):]
+    if kind not in SAMPLERS or not count:
+        raise ValueError(f"--samplers: unknown row {name!r}; expected ddim<k>, dpm<k>, mean<k> or zero")
+    return SAMPLERS[kind](schedule, draws=int(count)) if kind == "mean" else SAMPLERS[kind](schedule, steps=int(count))
 
 
 def main() -> None:
@@ -187,39 +206,42 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=12, help="N frames at 6.25 Hz (12: two decoder windows)")
     parser.add_argument("--out", default=None, help="default: <run dir>/eval")
     parser.add_argument("--samplers", default=DEFAULT_SAMPLERS, help=f"comma-separated, of {','.join(SAMPLERS)}")
-    parser.add_argument("--upsample-steps", type=int, default=10, help="DDIM steps of the 25 Hz path")
+    parser.add_argument("--upsample-sampler", default="mean16", help="row name of the sampler of the 25 Hz path")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="cpu", help="cpu or cuda (frames/s on a GPU)")
+    parser.add_argument("--world-seed", type=int, default=None, help="clips of this world instead of the validation one")
     args = parser.parse_args()
     torch.manual_seed(args.seed)
-    module = load_module(args.ckpt).eval()
+    module = load_module(args.ckpt).eval().to(args.device)
     run_dir = Path(args.ckpt).parents[1]
     out = Path(args.out or run_dir / "eval")
     run_cfg = OmegaConf.load(run_dir / "config_resolved.yaml")
     net, schedule = module.ema_decoder.eval(), module.schedule
 
-    full = held_out_clips(run_cfg, args.clips, args.frames)  # 25 Hz
+    full = held_out_clips(run_cfg, args.clips, args.frames, args.world_seed)  # 25 Hz, on the CPU (metrics there)
     truth = full[:, ::4]  # 6.25 Hz, N frames
-    tokens = module.tokenize(truth)
-    framewise = module.render_tokens(tokens)
+    tokens = module.tokenize(truth.to(args.device))
+    framewise = module.render_tokens(tokens).cpu()
     baseline = per_clip(framewise, truth)
-    results = {"clips": args.clips, "frames_6_25hz": args.frames, "framewise_tokenizer": scores(framewise, truth),
+    results = {"clips": args.clips, "frames_6_25hz": args.frames, "world_seed": args.world_seed, "framewise_tokenizer": scores(framewise, truth),
                "samplers": {}}
     decoded = {}
     for name in args.samplers.split(","):
         pipe = VideoDecodingPipeline(net, schedule, sampler_for(name, schedule), module.frames, module.context_frames,
                                      render_tokens=module.render_tokens)
         start = time.perf_counter()
-        decoded[name] = pipe.decode(tokens, torch.Generator().manual_seed(args.seed))
+        decoded[name] = pipe.decode(tokens, torch.Generator().manual_seed(args.seed)).cpu()
         results["samplers"][name] = {**scores(decoded[name], truth, baseline), "seconds": time.perf_counter() - start}
         print(name, json.dumps(results["samplers"][name]), flush=True)
     best = decoded.get("ddim50", next(iter(decoded.values())))
-    pipe = VideoDecodingPipeline(net, schedule, DDIMSampler(schedule, steps=args.upsample_steps), module.frames,
+    pipe = VideoDecodingPipeline(net, schedule, sampler_for(args.upsample_sampler, schedule), module.frames,
                                  module.context_frames, render_tokens=module.render_tokens)
     up = pipe(tokens, upsample=2, generator=torch.Generator().manual_seed(args.seed))
+    up.quadruple = up.quadruple.cpu()
     inserted = torch.ones(up.quadruple.shape[1], dtype=torch.bool)
     inserted[::4] = False
     results["upsampling"] = {
-        "steps": args.upsample_steps,
+        "sampler": args.upsample_sampler,
         "frames": [up.base.shape[1], up.double.shape[1], up.quadruple.shape[1]],
         "psnr_25hz_all": scores(up.quadruple, full)["psnr"],
         "psnr_25hz_interpolated_only": scores(up.quadruple[:, inserted], full[:, inserted])["psnr"],
@@ -227,7 +249,8 @@ def main() -> None:
     }
     mid = VideoDecoder(vocab_size=net.vocab_size, token_grid=net.token_grid, image_size=net.image_size, frames=module.frames,
                        channels=64, channel_mults=(1, 2, 4), res_blocks=2, attention_levels=(2,),
-                       render_tokens=net.render_tokens, residual=net.residual, residual_scale=net.residual_scale)
+                       render_tokens=net.render_tokens, residual=net.residual,
+                       residual_scale=net.residual_scale).to(args.device)
     one_clip = tokens[:1]
     results["speed"] = {
         "tiny_params": sum(p.numel() for p in net.parameters()),
@@ -235,9 +258,10 @@ def main() -> None:
         "denoiser_steps_per_s": {"tiny": denoiser_steps_per_second(net, module.frames),
                                  "mid": denoiser_steps_per_second(mid.eval(), module.frames)},
         "frames_25hz_per_s": {size: frames_per_second(VideoDecodingPipeline(
-            model, schedule, DDIMSampler(schedule, steps=args.upsample_steps), module.frames, module.context_frames,
+            model, schedule, sampler_for(args.upsample_sampler, schedule), module.frames, module.context_frames,
             render_tokens=module.render_tokens), one_clip) for size, model in (("tiny", net), ("mid", mid.eval()))},
         "threads": torch.get_num_threads(),
+        "device": str(args.device),
     }
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "results.json", json.dumps(results, indent=2))

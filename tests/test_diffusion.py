@@ -11,7 +11,8 @@ from omegaconf import OmegaConf
 
 from gaia_app.diffusion.noise_schedule import (CosineNoiseSchedule, eps_from_v, expand, v_from_x0, v_target,
                                                x0_from_v)
-from gaia_app.diffusion.samplers import DDIMSampler, DPMSolverSampler, ImageVideoBlend, trailing_timesteps
+from gaia_app.diffusion.samplers import (DDIMSampler, DPMSolverSampler, ImageVideoBlend, OneStepMeanSampler,
+                                         trailing_timesteps)
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 SCHEDULE = CosineNoiseSchedule()
@@ -253,3 +254,25 @@ def test_sampler_configs_instantiate(name: str, kind: type, steps: int) -> None:
     """conf/sampler/*.yaml are partials: the schedule is bound in code (the group is not in test_configs' list)."""
     sampler = instantiate(OmegaConf.load(CONF_DIR / "sampler" / f"{name}.yaml"))(schedule=SCHEDULE)
     assert isinstance(sampler, kind) and sampler.steps == steps and sampler.clip_x0
+
+
+def test_one_step_mean_averages_the_noise_out_of_x0() -> None:
+    """A denoiser whose x̂0 at the noisiest step is the mean plus an error carried by its noise input: one draw keeps
+    the error, 64 draws shrink it ≈ 8× (1/√draws), and an exact denoiser returns the mean at any draws."""
+    mean = torch.linspace(-0.5, 0.5, 64).reshape(1, 64)
+    t = torch.tensor([SCHEDULE.timesteps - 1])
+    alpha, sigma = SCHEDULE.alpha_sigma(t)
+
+    def noisy(x, step):  # x̂0 = mean + 0.3·x_T, returned as v
+        return v_from_x0(x, mean + 0.3 * x, alpha, sigma)
+
+    def error(draws: int) -> float:
+        noise = torch.randn(1, 64, generator=torch.Generator().manual_seed(1))
+        out = OneStepMeanSampler(SCHEDULE, draws=draws)(noisy, noise, torch.Generator().manual_seed(2))
+        return float((out - mean).pow(2).mean().sqrt())
+
+    assert 0.2 < error(1) < 0.4 and error(64) < error(1) / 5
+    exact = OneStepMeanSampler(SCHEDULE, draws=3)(lambda x, step: v_from_x0(x, mean, alpha, sigma), torch.randn(1, 64))
+    torch.testing.assert_close(exact, mean, atol=1e-4, rtol=0)
+    with pytest.raises(ValueError, match="draws ≥ 1"):
+        OneStepMeanSampler(SCHEDULE, draws=0)

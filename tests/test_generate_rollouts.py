@@ -314,3 +314,19 @@ def test_decoder_blend_config_reaches_the_decoder_and_changes_its_frames(checkpo
     none, plain = decoded(0.0)
     assert none is None and (blend.probability, blend.weight) == (1.0, 0.5)
     assert (blended - plain).abs().max() > 1e-4
+
+
+def test_decoder_sampler_config_picks_ddim_or_the_one_step_mean(checkpoints, tmp_path: Path) -> None:
+    from gaia_app.diffusion.samplers import DDIMSampler, OneStepMeanSampler
+    from gaia_app.tasks.rollout import load_pipeline
+
+    def sampler(*overrides: str):
+        cfg = compose_config("generate", [*(f"{k}={v}" for k, v in checkpoints.items()), "extras.print_config=false",
+                                          *SIZE, *overrides], tmp_path)
+        return load_pipeline(cfg).decoder.sampler
+
+    assert isinstance(sampler(), DDIMSampler) and sampler().steps == 50  # GAIA-1 §5.2
+    mean = sampler("decoder_sampler=one_step_mean", "decoder_steps=3")
+    assert isinstance(mean, OneStepMeanSampler) and mean.draws == 3
+    with pytest.raises(ValueError, match="decoder_sampler: expected one of"):
+        sampler("decoder_sampler=euler")

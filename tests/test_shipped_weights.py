@@ -1,4 +1,4 @@
-"""Shipped weights (gaia_app/pipelines/shipped.py): export from checkpoints, rebuild from .safetensors + .yaml alone,
+"""Shipped weights (gaia_app/utils/shipped.py): export from checkpoints, rebuild from .safetensors + .yaml alone,
 generate with `weights=`, and clear errors for missing, corrupt or foreign files."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from gaia_app.data.video_io import video_info
 from gaia_app.eval.controllability import save_probes
 from gaia_app.models.probes import InverseDynamicsProbe, SceneAttributeProbe
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
-from gaia_app.pipelines.shipped import WEIGHTS_ROOT, load_nets, shipped_folder
+from gaia_app.utils.shipped import WEIGHTS_ROOT, load_nets, shipped_folder
 from gaia_app.tasks.generate import generate
 from tests.conftest import compose_config
 from tests.test_generate_rollouts import SIZE, checkpoints, run  # noqa: F401  (checkpoints is a fixture)
@@ -129,9 +129,10 @@ def test_reproduce_lists_every_step_of_the_recipe(capsys) -> None:
     main(["--dry-run", "--out", "outputs/reference"])
     commands = capsys.readouterr().out.strip().splitlines()
     assert [c.split()[1] for c in commands] == ["train.py", "generate.py", "train.py", "-m", "benchmarks/probe_quality.py",
-                                                "generate.py", "generate.py"]
+                                                "generate.py", "train.py", "generate.py"]
     assert "experiment=gaia1/reference/tokenizer" in commands[0] and "experiment=gaia1/reference/world_model" in commands[2]
     assert "mode=export" in commands[-1] and "out_dir=gaia_app/weights/gaia1" in commands[-1]
+    assert "experiment=gaia1/reference/video_decoder" in commands[-2] and "decoder_ckpt=" in commands[-1]
 
 
 def test_reproduce_until_stops_after_the_step_and_resumes_past_recorded_steps(tmp_path: Path, monkeypatch, capsys) -> None:
@@ -222,7 +223,8 @@ def test_weights_with_a_video_decoder_decode_with_its_ema_weights(checkpoints, t
     assert results["video_decoder"]["bytes"] > 0
     folder = tmp_path / "weights"
     info = yaml.safe_load((folder / "video_decoder.yaml").read_text())["info"]
-    assert info == {"frames": 7, "context_frames": 2, "timesteps": 1000, "steps": 50}
+    # run() passes decoder_steps=1: the export records the decoding setting it was given
+    assert info == {"frames": 7, "context_frames": 2, "timesteps": 1000, "sampler": "ddim", "steps": 1}
     trained = Gaia1Pipeline.from_checkpoints(*(checkpoints[k] for k in ("tokenizer_ckpt", "world_model_ckpt",
                                                                          "decoder_ckpt")), decoder_steps=2)
     rebuilt = Gaia1Pipeline.from_weights(folder, decoder_steps=2)
@@ -236,3 +238,10 @@ def test_weights_with_a_video_decoder_decode_with_its_ema_weights(checkpoints, t
     cfg = compose_config("generate", [f"weights={folder}", "video_decoder=false", "extras.print_config=false", *SIZE],
                          tmp_path / "run")
     assert load_pipeline(cfg).decoder is None and load_pipeline(cfg, video_decoder=True).decoder is not None
+    # the decoding setting recorded at export is what weights= runs use unless told otherwise
+    run(checkpoints, tmp_path / "export_mean", "mode=export", f"out_dir={tmp_path / 'mean'}",
+        "decoder_sampler=one_step_mean", "decoder_steps=3")
+    assert yaml.safe_load((tmp_path / "mean" / "video_decoder.yaml").read_text())["info"]["sampler"] == "one_step_mean"
+    sampler = Gaia1Pipeline.from_weights(tmp_path / "mean").decoder.sampler
+    assert type(sampler).__name__ == "OneStepMeanSampler" and sampler.draws == 3
+    assert Gaia1Pipeline.from_weights(tmp_path / "mean", decoder_sampler="ddim").decoder.sampler.steps == 3

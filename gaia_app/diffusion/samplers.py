@@ -149,6 +149,40 @@ class DPMSolverSampler:
         return x
 
 
+class OneStepMeanSampler:
+    """The decoder's estimate of the conditional mean E[x0 | conditioning]: x̂0 at the noisiest step, averaged over
+    `draws` pure-noise inputs (x_T carries no signal there, α_T ≈ 0.001, so every draw estimates the same mean and the
+    average cancels what each adds from its noise). A fast deterministic-in-expectation alternative to DDIM-50:
+    `draws` network evaluations, no sampled detail, hence the lowest distortion (PSNR) and temporal flicker an
+    estimate of the mean can give (docs/video_decoder.md measures it against DDIM).
+
+    Args:
+        schedule: the noise schedule the denoiser was trained with.
+        draws: noise inputs averaged (network evaluations); the first is the `noise` passed in.
+        clip_x0: clip each x̂0 to [−1, 1] (pixel data).
+    """
+
+    def __init__(self, schedule: CosineNoiseSchedule, draws: int = 8, clip_x0: bool = True):
+        if draws < 1:
+            raise ValueError(f"OneStepMeanSampler: draws ≥ 1, got {draws}")
+        self.schedule, self.draws, self.clip_x0 = schedule, draws, clip_x0
+        self.steps = draws
+
+    @torch.no_grad()
+    def __call__(self, denoise: Denoiser, noise: torch.Tensor, generator: torch.Generator | None = None,
+                 callback: Callback | None = None) -> torch.Tensor:
+        """x_T = noise (b, ...) → mean x̂0 (b, ...); callback(i, T − 1, x_T of draw i, running mean) per draw."""
+        t = self.schedule.timesteps - 1
+        alpha, sigma = alpha_sigma_of(self.schedule, t)
+        total = torch.zeros_like(noise)
+        for i in range(self.draws):
+            x = noise if i == 0 else standard_normal(noise, generator)
+            total = total + predict_x0(denoise, x, t, alpha, sigma, self.clip_x0)
+            if callback is not None:
+                callback(i, t, x, total / (i + 1))
+        return total / self.draws
+
+
 class ImageVideoBlend:
     """Eq. 4 (GAIA-1 §5.2): at random diffusion steps, average the image and video denoisers.
 

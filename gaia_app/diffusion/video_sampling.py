@@ -12,7 +12,7 @@ from collections.abc import Callable
 import torch
 
 from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule, v_from_x0, x0_from_v
-from gaia_app.diffusion.samplers import Denoiser, ImageVideoBlend
+from gaia_app.diffusion.samplers import Denoiser, ImageVideoBlend, standard_normal
 from gaia_app.models.gaia1.video_decoder import VideoDecoder
 
 
@@ -36,7 +36,7 @@ def sample_window(net: VideoDecoder, schedule: CosineNoiseSchedule, sampler: Cal
 
     def denoiser(temporal: bool) -> Denoiser:
         def denoise(x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
-            fresh = torch.randn(context.shape, generator=generator, device=context.device)
+            fresh = standard_normal(context, generator)
             x = torch.where(given, schedule.add_noise(clean, fresh, step), x)
             v = net(x, step, tokens, token_mask, clean, context_mask, temporal=temporal, rendered=rendered)
             if not clip:
@@ -48,7 +48,7 @@ def sample_window(net: VideoDecoder, schedule: CosineNoiseSchedule, sampler: Cal
     denoise = denoiser(True)
     if blend is not None:  # eq. 4: image and video denoising mixed at random steps
         denoise = blend.denoiser(denoise, denoiser(False), generator)
-    noise = torch.randn(context.shape, generator=generator, device=context.device)
+    noise = standard_normal(context, generator)
     frames_callback = None if callback is None else (
         lambda i, t, x, x0_pred: callback(i, t, x, frame.decode(x0_pred)))
     out = sampler(denoise, noise, generator=generator, callback=frames_callback)

@@ -38,7 +38,7 @@ def load_tokenizer(source: str) -> ImageTokenizer:
     """The GAIA-1 image tokenizer of a training checkpoint (`.ckpt`), or of a shipped weights folder (a folder
     with tokenizer.safetensors, or a name under gaia_app/weights such as "gaia1"), so that a decoder can be trained
     on the tokens of the shipped reference weights."""
-    from gaia_app.pipelines.shipped import load_nets, shipped_folder
+    from gaia_app.utils.shipped import load_nets, shipped_folder
 
     if Path(source).is_file():
         return load_module(source).tokenizer

@@ -17,7 +17,7 @@ import torch
 from torch import nn
 
 from gaia_app.lit.checkpoint import model_config, read_checkpoint
-from gaia_app.pipelines.shipped import build
+from gaia_app.utils.shipped import build
 
 # component → (the LightningModule its checkpoint comes from, {net key of the model config: state-dict prefix})
 COMPONENTS = {

@@ -24,7 +24,7 @@ from einops import rearrange
 from gaia_app.diffusion.ar_sampling import AutoregressiveSampler
 from gaia_app.diffusion.guidance import ClassifierFreeGuidance
 from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule
-from gaia_app.diffusion.samplers import DDIMSampler, ImageVideoBlend
+from gaia_app.diffusion.samplers import DDIMSampler, ImageVideoBlend, OneStepMeanSampler
 from gaia_app.eval.token_perplexity import fit_window, token_log_perplexity
 from gaia_app.models.gaia1.tokenizer import ImageTokenizer
 from gaia_app.models.gaia1.world_model import STREAMS, Conditions, WorldModel
@@ -96,12 +96,14 @@ class Gaia1Pipeline:
     def from_checkpoints(cls, tokenizer: str | Path, world_model: str | Path, decoder: str | Path | None = None,
                          image_size: tuple[int, int] | None = None, device: str = "cpu",
                          decoder_steps: int | None = None, decoder_blend: ImageVideoBlend | None = None,
-                         **kwargs) -> Gaia1Pipeline:
+                         decoder_sampler: str | None = None, **kwargs) -> Gaia1Pipeline:
         """Load the three components' nets (pipelines/checkpoint_nets.py: weights-only, checked configs, no
         LightningModule); `image_size` defaults to the decoder's (required without one).
 
         decoder_steps: steps of the decoder run's own sampler (DDIM, §5.2: 50), None for its default.
         decoder_blend: eq. 4 image/video blend of the decoder's steps (§5.2: p = 0.25, w = 0.5), None for none.
+        decoder_sampler: "ddim" (the decoder run's own sampler, DDIM in every preset; also for None) or
+            "one_step_mean" (the conditional mean over decoder_steps noise draws, the fast option; `make_decoder_sampler`).
         kwargs: the constructor's sampler, guidance, upsample and rate.
         """
         from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
@@ -113,7 +115,8 @@ class Gaia1Pipeline:
             nets, config = checkpoint_nets(decoder, "video_decoder", "decoder_ckpt", device)
             net = nets["net"]
             image_size = image_size or tuple(net.image_size)
-            video = VideoDecodingPipeline(net, *decoder_sampling(config, decoder_steps), blend=decoder_blend, progress=True,
+            video = VideoDecodingPipeline(net, *decoder_sampling(config, decoder_steps, decoder_sampler or "ddim"),
+                                          blend=decoder_blend, progress=True,
                                           render_tokens=_renderer(tok) if net.render_tokens else None)
         if image_size is None:
             raise ValueError("image_size=(H, W) is needed when no decoder checkpoint gives it")
@@ -122,12 +125,13 @@ class Gaia1Pipeline:
     @classmethod
     def from_weights(cls, folder: str | Path, device: str = "cpu", video_decoder: bool = True,
                      decoder_steps: int | None = None, decoder_blend: ImageVideoBlend | None = None, upsample: int = 2,
-                     **kwargs) -> Gaia1Pipeline:
-        """Tokenizer and world model from a shipped weights folder (gaia_app/pipelines/shipped.py), e.g.
+                     decoder_sampler: str | None = None, **kwargs) -> Gaia1Pipeline:
+        """Tokenizer and world model from a shipped weights folder (gaia_app/utils/shipped.py), e.g.
         gaia_app/weights/gaia1, and its video decoder when it has one and `video_decoder` (else frames are decoded
-        one by one by the tokenizer at the world model's rate). decoder_steps: DDIM steps (None: the decoder run's);
-        decoder_blend, upsample: as in from_checkpoints. kwargs: sampler, guidance."""
-        from gaia_app.pipelines.shipped import load_nets, weight_files
+        one by one by the tokenizer at the world model's rate). decoder_sampler, decoder_steps: None for the setting
+        the decoder was exported with (video_decoder.yaml info.sampler, info.steps); decoder_blend, upsample: as in
+        from_checkpoints. kwargs: sampler, guidance."""
+        from gaia_app.utils.shipped import load_nets, weight_files
 
         tokenizer, tokenizer_info = load_nets(folder, "tokenizer", device)
         world_model, world_info = load_nets(folder, "world_model", device)
@@ -137,7 +141,8 @@ class Gaia1Pipeline:
         if video_decoder and weight_files(folder, "video_decoder")[0].exists():
             nets, info = load_nets(folder, "video_decoder", device)
             schedule = CosineNoiseSchedule(int(info["timesteps"]))
-            sampler = DDIMSampler(schedule, steps=decoder_steps or int(info["steps"]))
+            sampler = make_decoder_sampler(decoder_sampler or str(info.get("sampler", "ddim")), schedule,
+                                           decoder_steps or int(info["steps"]))
             video = VideoDecodingPipeline(nets["net"], schedule, sampler, int(info["frames"]), int(info["context_frames"]),
                                           blend=decoder_blend, progress=True,
                                           render_tokens=_renderer(tokenizer["net"]) if nets["net"].render_tokens else None)
@@ -249,15 +254,34 @@ class Gaia1Pipeline:
         return Gaia1Rollout(tokens.cpu(), base, video, self.fps, log_ppl, t0)
 
 
-def decoder_sampling(config: dict, steps: int | None) -> tuple[CosineNoiseSchedule, Callable, int, int]:
+DECODER_SAMPLERS = ("ddim", "one_step_mean")
+
+
+def make_decoder_sampler(kind: str, schedule: CosineNoiseSchedule, steps: int,
+                         stored: Callable | None = None) -> Callable:
+    """The video decoder's sampler: "ddim" with `steps` steps (the run's stored sampler factory when given, GAIA-1
+    §5.2), or "one_step_mean", the conditional mean over `steps` noise draws (docs/video_decoder.md)."""
+    if kind == "one_step_mean":
+        return OneStepMeanSampler(schedule, draws=steps)
+    if kind == "ddim":
+        return stored(schedule, steps=steps) if stored is not None else DDIMSampler(schedule, steps=steps)
+    raise ValueError(f"decoder_sampler: expected one of {DECODER_SAMPLERS}, got {kind!r}")
+
+
+def decoder_sampling(config: dict, steps: int | None, kind: str = "ddim") -> tuple[CosineNoiseSchedule, Callable, int, int]:
     """(noise schedule, sampler, frames T', context frames) of a video decoder's stored config (model.schedule,
-    model.sampler with `steps` if given, model.frames, model.context_frames), as VideoDecoderModule builds them."""
+    model.sampler with `steps` if given, model.frames, model.context_frames), as VideoDecoderModule builds them;
+    kind "one_step_mean" replaces the sampler (`make_decoder_sampler`, `steps` draws, 8 if None)."""
     from hydra.utils import instantiate
 
     schedule = instantiate(config["schedule"])() if config.get("schedule") else CosineNoiseSchedule()
     if not config.get("sampler"):
         raise ValueError("the video decoder checkpoint's model config has no sampler")
-    sampler = instantiate(config["sampler"])(schedule, **({"steps": steps} if steps else {}))
+    stored = instantiate(config["sampler"])
+    if kind == "ddim" and not steps:
+        sampler = stored(schedule)
+    else:
+        sampler = make_decoder_sampler(kind, schedule, steps or 8, stored)
     return schedule, sampler, int(config.get("frames", 7)), int(config.get("context_frames", 2))
 
 

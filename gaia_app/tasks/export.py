@@ -1,4 +1,4 @@
-"""`generate.py mode=export`: a shipped-weights folder (gaia_app/pipelines/shipped.py) from training checkpoints.
+"""`generate.py mode=export`: a shipped-weights folder (gaia_app/utils/shipped.py) from training checkpoints.
 
     python generate.py mode=export tokenizer_ckpt=<tokenizer last.ckpt> world_model_ckpt=<world model last.ckpt> \\
         controllability.probes=<probes folder> out_dir=gaia_app/weights/gaia1
@@ -24,7 +24,7 @@ from omegaconf import DictConfig
 
 from gaia_app.eval.controllability import PROBE_INFO, PROBE_WEIGHTS, load_probes
 from gaia_app.lit.checkpoint import read_checkpoint
-from gaia_app.pipelines.shipped import export_component, read_config, shipped_folder, weight_files
+from gaia_app.utils.shipped import export_component, read_config, shipped_folder, weight_files
 
 
 def export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
@@ -54,7 +54,8 @@ def export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                                               {"rate": float(cfg.rate)},
                                               cfg.export_dtype)
     if cfg.get("decoder_ckpt"):
-        results["video_decoder"] = export_decoder(read_checkpoint(cfg.decoder_ckpt), out, cfg.export_dtype)
+        results["video_decoder"] = export_decoder(read_checkpoint(cfg.decoder_ckpt), out, cfg.export_dtype,
+                                                  cfg.get("decoder_sampler"), cfg.get("decoder_steps"))
     probes = cfg.controllability.probes or (source / "probes" if source is not None else None)
     if probes:
         load_probes(probes, tuple(image_size), float(cfg.rate))  # refuses probes of another size
@@ -65,13 +66,20 @@ def export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     return results
 
 
-def export_decoder(checkpoint: dict[str, Any], out: Path, dtype: str) -> dict[str, Any]:
+def export_decoder(checkpoint: dict[str, Any], out: Path, dtype: str, sampler: str | None = None,
+                   steps: int | None = None) -> dict[str, Any]:
     """video_decoder.{safetensors,yaml} from a video decoder checkpoint: its EMA weights (what generation samples
-    with, GAIA-1 §4.3) and, as info, what the decoding pipeline needs (T', context frames, diffusion timesteps, the
-    run's sampler steps)."""
+    with, GAIA-1 §4.3) and, as info, what the decoding pipeline needs (T', context frames, diffusion timesteps) and
+    the decoding setting `weights=` runs default to: `sampler` ("ddim" or "one_step_mean") and `steps`, else the
+    run's own sampler (DDIM) and steps."""
+    from gaia_app.pipelines.gaia1 import DECODER_SAMPLERS
+
+    if sampler is not None and sampler not in DECODER_SAMPLERS:
+        raise ValueError(f"decoder_sampler: expected one of {DECODER_SAMPLERS}, got {sampler!r}")
     model_cfg = checkpoint["hyper_parameters"]["model_cfg"]
     if not str(model_cfg.get("_target_", "")).endswith("VideoDecoderModule"):
         raise ValueError(f"decoder_ckpt holds a {model_cfg.get('_target_')} checkpoint, expected a VideoDecoderModule")
     info = {"frames": int(model_cfg["frames"]), "context_frames": int(model_cfg["context_frames"]),
-            "timesteps": int(model_cfg["schedule"].get("timesteps", 1000)), "steps": int(model_cfg["sampler"]["steps"])}
+            "timesteps": int(model_cfg["schedule"].get("timesteps", 1000)), "sampler": sampler or "ddim",
+            "steps": int(steps or model_cfg["sampler"]["steps"])}
     return export_component(checkpoint, out, "video_decoder", ["net"], info, dtype, prefixes={"net": "ema.module."})

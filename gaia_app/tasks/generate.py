@@ -39,7 +39,7 @@ from gaia_app.pipelines.gaia1_tokenizer import (ReconstructionOutput, TokenCache
                                                 camera_names, segment_names)
 from gaia_app.models.gaia1.tokenizer import ImageTokenizer
 from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
-from gaia_app.pipelines.shipped import load_nets, shipped_folder
+from gaia_app.utils.shipped import load_nets, shipped_folder
 from gaia_app.tasks.controllability import controllability
 from gaia_app.tasks.evaluate import evaluate
 from gaia_app.tasks.export import export

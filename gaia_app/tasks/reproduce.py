@@ -12,7 +12,9 @@ Steps, each a train.py / generate.py command that resumes or skips finished work
   probes           benchmarks/probe_quality.py: controllability probes for the recipe's size and protocol, and
                    their model-free check (ceiling vs reference, scene accuracy on real frames)
   controllability  generate.py mode=controllability with those probes: 32 held-out contexts × 4 commands, prompts
-  export           generate.py mode=export into the weights folder (float16 safetensors + YAML + probes)
+  video_decoder    train.py experiment=gaia1/reference/video_decoder on the tokens of the step-1 tokenizer
+  export           generate.py mode=export into the weights folder (float16 safetensors + YAML + probes), the video
+                   decoder with its measured decoding setting (the conditional mean over 16 draws)
 Then MANIFEST.md beside the weights folder (gaia_app/weights/MANIFEST.md) records, per step, the exact command, its wall time, the commit and the
 machine, with the cross-entropy and controllability tables.
 """
@@ -37,6 +39,9 @@ ROOT = Path(__file__).resolve().parents[2]
 # picked among 1.5, 3 and 6 on the validation world (context.seed=2000, docs/reference.md), never on the evaluation
 # world 1000 that the table reports
 PROTOCOL = ["context.frames=4", "seconds=1.25", "guidance.scale=1.5", "guidance.text_scale=3"]
+# how the shipped video decoder decodes by default (docs/video_decoder.md: the one setting that beats frame-by-frame
+# decoding at the recipe's budget)
+DECODING = ["decoder_sampler=one_step_mean", "decoder_steps=16"]
 PROBES = ["--context-frames=4", "--seconds=1.25", "--probe-clips=768", "--probe-steps=4000"]
 # clips simulated and rendered at the world model's 6.25 Hz directly: a quarter of the rendering of 25 Hz clips.
 # Open-loop accelerations drawn symmetric in [-5, 5] m/s² (the default [-4.5, 2.5] makes speeding up rarer and
@@ -50,6 +55,7 @@ def steps(out: Path, weights: Path) -> list[tuple[str, list[str]]]:
     """(name, argv) of every step, in order."""
     tokenizer, world_model = out / "tokenizer/checkpoints/last.ckpt", out / "world_model/checkpoints/last.ckpt"
     ckpts = [f"tokenizer_ckpt={tokenizer}", f"world_model_ckpt={world_model}"]
+    decoder = out / "video_decoder/checkpoints/last.ckpt"
     probes = out / "probes/probes"
     py = sys.executable
     return [
@@ -64,7 +70,10 @@ def steps(out: Path, weights: Path) -> list[tuple[str, list[str]]]:
         ("probes", [py, "benchmarks/probe_quality.py", f"--out={out / 'probes'}", *PROBES]),
         ("controllability", [py, "generate.py", "mode=controllability", *ckpts, *PROTOCOL, f"controllability.probes={probes}",
                              f"hydra.run.dir={out / 'controllability'}"]),
-        ("export", [py, "generate.py", "mode=export", *ckpts, f"controllability.probes={probes}",
+        ("video_decoder", [py, "train.py", "experiment=gaia1/reference/video_decoder", f"model.tokenizer_ckpt={tokenizer}",
+                           f"hydra.run.dir={out / 'video_decoder'}", "ckpt_path=last"]),
+        ("export", [py, "generate.py", "mode=export", *ckpts, f"decoder_ckpt={decoder}", *DECODING,
+                    f"controllability.probes={probes}",
                     f"out_dir={weights}", f"hydra.run.dir={out / 'export'}"]),
     ]
 

@@ -30,7 +30,7 @@ from gaia_app.diffusion.samplers import ImageVideoBlend
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline, Gaia1Rollout
 from gaia_app.pipelines.gaia1_inputs import (MODES, ContextClip, build_conditioning, context_for, describe_actions,
                                               future_frames)
-from gaia_app.pipelines.shipped import shipped_folder
+from gaia_app.utils.shipped import shipped_folder
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.viz.blueprints import rollout_blueprint
 from gaia_app.viz.media import log_token_map, to_hwc_uint8, video_grid
@@ -78,7 +78,7 @@ def load_pipeline(cfg: DictConfig, video_decoder: bool | None = None) -> Gaia1Pi
         use_decoder = bool(cfg.get("video_decoder", True)) if video_decoder is None else video_decoder
         return Gaia1Pipeline.from_weights(shipped_folder(cfg.weights), device=cfg.device, video_decoder=use_decoder,
                                           decoder_steps=cfg.decoder_steps, decoder_blend=decoder_blend(cfg),
-                                          upsample=cfg.upsample, sampler=instantiate(cfg.token_sampler),
+                                          decoder_sampler=cfg.decoder_sampler, upsample=cfg.upsample, sampler=instantiate(cfg.token_sampler),
                                           guidance=guidance)
     for key in ("tokenizer_ckpt", "world_model_ckpt"):
         if not cfg.get(key):
@@ -86,7 +86,7 @@ def load_pipeline(cfg: DictConfig, video_decoder: bool | None = None) -> Gaia1Pi
     image_size = (cfg.data.height, cfg.data.width)
     return Gaia1Pipeline.from_checkpoints(cfg.tokenizer_ckpt, cfg.world_model_ckpt, cfg.decoder_ckpt,
                                           image_size=image_size, device=cfg.device, decoder_steps=cfg.decoder_steps,
-                                          decoder_blend=decoder_blend(cfg),
+                                          decoder_blend=decoder_blend(cfg), decoder_sampler=cfg.decoder_sampler,
                                           sampler=instantiate(cfg.token_sampler), guidance=guidance,
                                           upsample=cfg.upsample, rate=cfg.rate)
 
