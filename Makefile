@@ -39,7 +39,7 @@ PROTOCOL := context.frames=4 seconds=1.25 guidance.scale=1.5 guidance.text_scale
 DEMO_CONTROLLABILITY := controllability.contexts=8 controllability.text_repeats=8 controllability.real_clips=32 \
 	'controllability.prompts.weather=[clear,snow]'
 demo: install
-	$(PY) generate.py mode=showcase weights=gaia1 $(PROTOCOL) upsample=0 decoder_blend.probability=0 \
+	$(PY) generate.py mode=showcase weights=gaia1 $(PROTOCOL) upsample=0 decoder_steps=16 decoder_blend.probability=0 \
 		hydra.run.dir=$(DEMO_DIR)/showcase
 	$(PY) generate.py mode=controllability weights=gaia1 $(PROTOCOL) $(DEMO_CONTROLLABILITY) \
 		hydra.run.dir=$(DEMO_DIR)/controllability
