@@ -236,3 +236,17 @@ def test_an_unscaled_residual_falls_below_its_input_after_the_same_training() ->
     net, module, tokens, rendered, truth = train_on_fixed_batch(scale=1.0)
     floor = float(psnr(rendered.flatten(0, 1), truth.flatten(0, 1)).mean())
     assert decoded_psnr(net, module, tokens, truth, 1) < floor - 3.0
+
+
+def test_decoder_training_reads_the_tokenizer_of_shipped_weights() -> None:
+    """model.tokenizer_ckpt=gaia1 (experiment=gaia1/reference/video_decoder): the shipped tokenizer, weights-only."""
+    from gaia_app.lit.gaia1_video_decoder import load_tokenizer
+    from gaia_app.models.gaia1.tokenizer import ImageTokenizer
+
+    tokenizer = load_tokenizer("gaia1")
+    assert isinstance(tokenizer, ImageTokenizer) and tokenizer.codebook_size == 1024
+    with torch.no_grad():
+        tokens = tokenizer.encode(torch.zeros(1, 3, 64, 112))
+    assert tokens.shape == (1, 8, 14)
+    with pytest.raises(FileNotFoundError, match="no_such_weights"):
+        load_tokenizer("no_such_weights")

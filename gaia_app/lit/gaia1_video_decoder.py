@@ -32,14 +32,13 @@ from gaia_app.lit.checkpoint import load_module
 from gaia_app.models.gaia1.decoder_tasks import TASKS, DecoderTask, TaskSampler, drop_tokens, make_task
 from gaia_app.models.gaia1.tokenizer import ImageTokenizer
 from gaia_app.models.gaia1.video_decoder import VideoDecoder
+from gaia_app.utils.shipped import load_nets, shipped_folder
 
 
 def load_tokenizer(source: str) -> ImageTokenizer:
     """The GAIA-1 image tokenizer of a training checkpoint (`.ckpt`), or of a shipped weights folder (a folder
     with tokenizer.safetensors, or a name under gaia_app/weights such as "gaia1"), so that a decoder can be trained
     on the tokens of the shipped reference weights."""
-    from gaia_app.utils.shipped import load_nets, shipped_folder
-
     if Path(source).is_file():
         return load_module(source).tokenizer
     return load_nets(shipped_folder(source), "tokenizer")[0]["net"]
