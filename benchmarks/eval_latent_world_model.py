@@ -24,7 +24,7 @@ from gaia_app.data.metadata import MetadataEncoder
 from gaia_app.diffusion.flow_matching import FlowSampler
 from gaia_app.eval.metrics import psnr
 from gaia_app.lit.checkpoint import load_module
-from gaia_app.lit.gaia2_world_model import batch_conditions
+from gaia_app.models.gaia2.conditioning import batch_conditions
 from gaia_app.pipelines.gaia2_world_model import LatentWorldModelPipeline
 
 

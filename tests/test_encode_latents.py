@@ -107,7 +107,7 @@ def test_encode_needs_a_gaia2_tokenizer_checkpoint(tmp_path: Path) -> None:
     tok_dir = tmp_path / "g1tok"
     train(compose_config("train", ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "data=synthetic_frames_tiny",
                                    "extras.print_config=false", "trainer.max_steps=1", "logger=csv"], tok_dir))
-    with pytest.raises(TypeError, match="mode=encode needs a VideoTokenizerModule checkpoint"):
+    with pytest.raises(TypeError, match="mode=encode: ckpt=.* holds a ImageTokenizerModule checkpoint, expected a VideoTokenizerModule"):
         run_encode(tok_dir / "checkpoints" / "last.ckpt", tmp_path / "g", tmp_path / "latents")
 
 

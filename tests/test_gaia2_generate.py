@@ -192,3 +192,52 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     merged = combined_table({"GAIA-1": gaia1, "GAIA-2": tmp_path})
     assert merged.count("| GAIA-2 · ") == 3 and "| GAIA-1 · model (video rollouts) | 20.000 | 0.500 | 3.000 | 0.200 |" in merged
     assert "lpips" not in merged  # only the metrics both runs computed
+
+
+def test_export_gives_a_weights_folder_that_generates_like_the_checkpoints(checkpoints, tmp_path: Path) -> None:
+    """model=gaia2 mode=export → video_tokenizer.* + latent_world_model.*; `weights=` runs generate the same
+    latents as the training checkpoints (float32 export: exactly; nothing but nets is stored)."""
+    folder = tmp_path / "weights"
+    exported = generate(compose_config("generate", ["model=gaia2", "mode=export", *RIG, "export_dtype=float32",
+                                                    f"tokenizer_ckpt={checkpoints['tokenizer']}",
+                                                    f"world_model_ckpt={checkpoints['world_model']}",
+                                                    f"out_dir={folder}"], tmp_path / "export"))["results"]
+    assert {p.name for p in folder.iterdir()} == {"video_tokenizer.safetensors", "video_tokenizer.yaml",
+                                                  "latent_world_model.safetensors", "latent_world_model.yaml"}
+    assert exported["latent_world_model"]["parameters"] > 0
+    run(checkpoints, tmp_path / "ckpt", "scratch")
+    cfg = compose_config("generate", ["model=gaia2", "mode=scratch", *RIG, f"weights={folder}", "model.sampler.steps=3",
+                                      "model.sampler.progress=false", "num_futures=1"], tmp_path / "weights_run")
+    generate(cfg)
+    np.testing.assert_array_equal(np.load(tmp_path / "weights_run" / "latents.npy"),
+                                  np.load(tmp_path / "ckpt" / "latents.npy"))
+    with pytest.raises(ValueError, match="replaces tokenizer_ckpt"):
+        generate(compose_config("generate", ["model=gaia2", "mode=scratch", *RIG, f"weights={folder}",
+                                             f"tokenizer_ckpt={checkpoints['tokenizer']}"], tmp_path / "both"))
+    with pytest.raises(ValueError, match=r"trained on \(64, 112\) frames"):
+        generate(compose_config("generate", ["model=gaia2", "mode=scratch", *RIG, f"weights={folder}",
+                                             "data.height=32"], tmp_path / "size"))
+    with pytest.raises(TypeError, match="tokenizer_ckpt=.* holds a LatentWorldModelModule checkpoint"):
+        generate(compose_config("generate", ["model=gaia2", "mode=export", *RIG, f"out_dir={tmp_path / 'x'}",
+                                             f"tokenizer_ckpt={checkpoints['world_model']}",
+                                             f"world_model_ckpt={checkpoints['world_model']}"], tmp_path / "wrong"))
+
+
+def test_inference_builds_nets_without_lightning_modules(checkpoints, tmp_path: Path) -> None:
+    """Issue 23: GAIA-2 inference and the tokenizer modes build bare nets from checkpoints; no gaia_app.lit module
+    (and so no LightningModule) is imported on the way (a fresh interpreter, so nothing is preloaded)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import sys\n"
+        "from gaia_app.pipelines.gaia2 import Gaia2Pipeline\n"
+        "from gaia_app.pipelines.checkpoint_nets import checkpoint_nets\n"
+        f"p = Gaia2Pipeline.from_checkpoints(r'{checkpoints['tokenizer']}', r'{checkpoints['world_model']}', 64, 112)\n"
+        f"checkpoint_nets(r'{checkpoints['tokenizer']}', 'video_tokenizer', 'ckpt')\n"
+        "import gaia_app.tasks.generate\n"
+        "print(sorted(m for m in sys.modules if m.startswith('gaia_app.lit')))\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "[]"

@@ -188,6 +188,11 @@ def test_a_world_model_trains_on_the_shipped_tokenizer_and_exports_beside_it(che
     assert generate(cfg)["results"]["train"]["written"] == 2
     tokens = np.load(find_segments(out / "train")[0])
     assert tokens.shape[1:] == (8, 12)  # the shipped tokenizer's grid at 32×48
+    cfg = compose_config("generate", ["mode=reconstruct", f"weights={shipped}", "data=synthetic_tiny", "num_clips=1",
+                                      *SIZE, "extras.print_config=false"], tmp_path / "r")
+    reconstructed = generate(cfg)["results"]
+    assert len(reconstructed) == 1 and 0 < next(iter(reconstructed.values()))["psnr"] < 100  # a tiny test tokenizer
+    assert list((tmp_path / "r").glob("*.mp4")) and (tmp_path / "r" / "reconstruction.rrd").is_file()
     with pytest.raises(ValueError, match=r"trained on \(32, 48\) frames, but data.height × data.width is \(64, 112\)"):
         generate(compose_config("generate", ["mode=tokenize", f"weights={shipped}", "data=synthetic_tiny",
                                              f"out_dir={tmp_path / 'x'}", "extras.print_config=false"], tmp_path / "x"))

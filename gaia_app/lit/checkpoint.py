@@ -1,140 +1,20 @@
-"""Rebuild a trained LightningModule from its checkpoint alone (no run dir, no Hydra needed), safely.
+"""Rebuild a trained LightningModule from its checkpoint alone (no run dir, no Hydra config needed), safely.
 
-A checkpoint is either Lightning's single file or, from a sharded run (trainer=fsdp2 / fsdp with
-`save_distributed_checkpoint` / `state_dict_type: sharded`), a folder of per-rank `.distcp` shards plus Lightning's
-`meta.pt`; both load on one CPU process.
-
-Checkpoints travel between users, so loading one must never run code: every file is unpickled with
-`weights_only=True` (tensors and plain containers only), the shards' `.metadata` pickle by an unpickler that
-builds only torch.distributed.checkpoint's metadata types, and the stored model config is instantiated only
-after every `_target_` in it passed `gaia_app.utils.targets.check_targets`.
+The file is read weights-only and its model config checked against the `_target_` allow-list
+(gaia_app/utils/checkpoint_io.py) before anything is instantiated. Inference does not come here: it builds
+the bare nets (gaia_app/pipelines/checkpoint_nets.py, or shipped weights in gaia_app/utils/shipped.py).
 """
 
 from __future__ import annotations
 
-import pickle
-import re
-import tempfile
 from pathlib import Path
-from typing import Any
 
 import torch
 from hydra.utils import instantiate
 
 from gaia_app.lit.base import GaiaModule
-from gaia_app.utils.targets import check_targets
-
-SHARDED_META = "meta.pt"  # what Lightning writes beside the shards: hyper-parameters, loop state
-DCP_METADATA = ".metadata"  # torch.distributed.checkpoint's index of the shards, a pickle
-
-
-class UnsafeCheckpointError(ValueError):
-    """A checkpoint file holds something other than tensors and plain data."""
-
-
-def safe_torch_load(path: Path, map_location: str | torch.device = "cpu", mmap: bool = False) -> Any:
-    """torch.load with weights_only=True; errors name the file: refused content, truncated or foreign files."""
-    try:
-        return torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError) as error:
-        found = re.search(r"Unsupported global: GLOBAL (\S+)", str(error))
-        if found:
-            raise UnsafeCheckpointError(
-                f"checkpoint '{path}' was refused: it holds objects other than tensors and plain data, which could "
-                f"run code when loaded (unsupported global {found.group(1)}); only load checkpoints written by "
-                "gaia_app's train.py, from a source you trust") from None
-        first_line = str(error).strip().splitlines()[0][:200] if str(error).strip() else ""
-        raise ValueError(f"checkpoint '{path}' is empty, truncated or not a PyTorch checkpoint "
-                         f"({type(error).__name__}: {first_line}); use another checkpoint of the run, e.g. its "
-                         "checkpoints/last.ckpt, or train again") from None
-
-
-def read_checkpoint(ckpt_path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """The checkpoint dict (`state_dict`, `hyper_parameters`, ...) of a file or of a sharded checkpoint folder."""
-    path = Path(ckpt_path)
-    if path.is_dir():
-        return read_sharded_checkpoint(path, map_location)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint '{path}' does not exist")
-    return checked_dict(safe_torch_load(path, map_location), path)
-
-
-def check_checkpoint_file(ckpt_path: str | Path) -> None:
-    """Before Lightning resumes from `ckpt_path`: a file that loads safely (memory-mapped, nothing copied); a sharded
-    folder whose index is safe. Raises the errors of `read_checkpoint`."""
-    path = Path(ckpt_path)
-    if path.is_dir():
-        check_dcp_metadata(path)
-        checked_dict(safe_torch_load(path / SHARDED_META), path / SHARDED_META)
-    else:
-        checked_dict(safe_torch_load(path, mmap=True), path)
-
-
-def checked_dict(checkpoint: Any, path: Path) -> dict[str, Any]:
-    if not isinstance(checkpoint, dict):
-        raise ValueError(f"checkpoint '{path}' holds a {type(checkpoint).__name__}, expected Lightning's checkpoint "
-                         "dict (state_dict, hyper_parameters, ...)")
-    return checkpoint
-
-
-class DcpMetadataUnpickler(pickle.Unpickler):
-    """Builds only the dataclasses of torch.distributed.checkpoint's index (and torch.Size / dtypes / containers)."""
-
-    SAFE = {("torch", "Size"), ("collections", "OrderedDict"), ("builtins", "set"), ("builtins", "frozenset"),
-            ("builtins", "slice"), ("torch.serialization", "_get_layout"),
-            # the checkpoint id of StorageMeta: a path, built as data
-            ("pathlib", "PosixPath"), ("pathlib", "PurePosixPath"), ("pathlib", "WindowsPath"),
-            ("pathlib", "PureWindowsPath")}
-
-    def find_class(self, module: str, name: str) -> Any:
-        dtype = module == "torch" and isinstance(getattr(torch, name, None), (torch.dtype, torch.layout,
-                                                                            torch.memory_format))
-        if module.startswith("torch.distributed.checkpoint.") or (module, name) in self.SAFE or dtype:
-            return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"Unsupported global: {module}.{name}")
-
-
-def check_dcp_metadata(folder: Path) -> None:
-    """torch.distributed.checkpoint reads its `.metadata` with plain pickle: unpickle it here first, safely."""
-    index = folder / DCP_METADATA
-    if not index.is_file():
-        raise FileNotFoundError(f"checkpoint folder '{folder}' has no {DCP_METADATA} index of its shards")
-    try:
-        with index.open("rb") as f:
-            DcpMetadataUnpickler(f).load()
-    except pickle.UnpicklingError as error:
-        raise UnsafeCheckpointError(f"checkpoint index '{index}' was refused: it holds objects other than "
-                                    f"torch.distributed.checkpoint metadata ({error})") from None
-    except (EOFError, ValueError, TypeError, AttributeError) as error:
-        raise ValueError(f"checkpoint index '{index}' is truncated or damaged ({type(error).__name__}: {error})") from None
-
-
-def read_sharded_checkpoint(folder: Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """Gather a torch.distributed.checkpoint folder into one full state dict, without a process group."""
-    from torch.distributed.checkpoint.format_utils import dcp_to_torch_save
-
-    meta = folder / SHARDED_META
-    if not meta.is_file() or not any(folder.glob("*.distcp")):
-        raise FileNotFoundError(f"checkpoint folder '{folder}' is not a sharded checkpoint: expected *.distcp shards "
-                                f"and {SHARDED_META}")
-    check_dcp_metadata(folder)
-    with tempfile.TemporaryDirectory() as tmp:
-        gathered = Path(tmp) / "gathered.pt"
-        dcp_to_torch_save(folder, gathered)
-        shards = safe_torch_load(gathered, map_location)
-    checkpoint = checked_dict(safe_torch_load(meta, map_location), meta)
-    checkpoint["state_dict"] = shards["state_dict"]
-    return checkpoint
-
-
-def model_config(checkpoint: dict[str, Any], ckpt_path: str | Path) -> dict[str, Any]:
-    """The `model_cfg` that `tasks.train` stored in the checkpoint, with every `_target_` checked (none built yet)."""
-    model_cfg = (checkpoint.get("hyper_parameters") or {}).get("model_cfg")
-    if model_cfg is None:
-        raise KeyError(f"checkpoint '{ckpt_path}' has no hyper_parameters.model_cfg; was it written by gaia_app's "
-                       "train.py?")
-    check_targets(model_cfg, f"checkpoint '{ckpt_path}': hyper_parameters.model_cfg")
-    return model_cfg
+from gaia_app.utils.checkpoint_io import (UnsafeCheckpointError, check_checkpoint_file, model_config,  # noqa: F401
+                                          read_checkpoint, safe_torch_load)
 
 
 def load_module(ckpt_path: str | Path, map_location: str | torch.device = "cpu") -> GaiaModule:

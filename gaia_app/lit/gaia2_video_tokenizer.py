@@ -27,7 +27,7 @@ from torch import nn
 from gaia_app.encoders import distillation_loss
 from gaia_app.eval.metrics import psnr, ssim
 from gaia_app.lit.adversarial import AdversarialModule
-from gaia_app.lit.checkpoint import read_checkpoint
+from gaia_app.utils.checkpoint_io import read_checkpoint
 from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer, VideoTokenizerOutput, kl_bits_per_pixel
 
 STAGES = ("reconstruction", "gan")

@@ -20,23 +20,9 @@ from torch import nn
 
 from gaia_app.diffusion.flow_matching import sample_tau, velocity_target
 from gaia_app.lit.base import GaiaModule
-from gaia_app.models.gaia2.conditioning import AgentBoxes3d, WorldConditions
+from gaia_app.models.gaia2.conditioning import WorldConditions, batch_conditions, caption_vector  # noqa: F401
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
 from gaia_app.nn.distributions import DiagonalGaussian
-
-
-def batch_conditions(batch: dict[str, Any], text: torch.Tensor | None = None) -> WorldConditions:
-    """WorldConditions of a latent-window batch (absent labels stay None)."""
-    if "intrinsics" not in batch:
-        raise ValueError("latent batch has no camera intrinsics/extrinsics: the GAIA-2 world model needs the rig "
-                         "(conditions.json 'cameras' of the latent cache)")
-    agents = None
-    if "agents_centre" in batch:
-        agents = AgentBoxes3d(batch["agents_centre"], batch["agents_size"], batch["agents_yaw"],
-                              batch["agents_category"], batch["agents_mask"])
-    return WorldConditions(batch["intrinsics"], batch["extrinsics"], tuple(batch["image_size"]),
-                           timestamps=batch.get("timestamps"), actions=batch.get("actions"), agents=agents,
-                           metadata=batch.get("metadata") or None, text=text)
 
 
 class LatentWorldModelModule(GaiaModule):
@@ -83,8 +69,7 @@ class LatentWorldModelModule(GaiaModule):
         """(b, e) mean of the caption's token features, or None without captions or text encoder."""
         if self.text_encoder is None or "text" not in batch:
             return None
-        features = self.text_encoder([[caption] for caption in batch["text"]])  # (b, 1, m, e)
-        return features[:, 0].mean(dim=1).to(batch["mean"].dtype)
+        return caption_vector(self.text_encoder, batch["text"]).to(batch["mean"].dtype)
 
     def task_taus(self, b: int, t: int, tau: torch.Tensor, context: torch.Tensor | None = None) -> torch.Tensor:
         """(b, t) flow times: τ per sample on its generated steps, 1 on its `context` (b,) clean first steps."""

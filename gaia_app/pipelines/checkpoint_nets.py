@@ -1,10 +1,11 @@
-"""Inference nets straight from GAIA-1 training checkpoints, without building their LightningModules.
+"""Inference nets straight from GAIA-1 and GAIA-2 training checkpoints, without building their LightningModules.
 
 A training checkpoint holds the model config `train.py` stored and every tensor of the LightningModule. For
 inference only the nets matter (the tokenizer without its discriminator, the world model with its text encoder,
-the video decoder's EMA weights), so they are built from their own sub-configs, after every `_target_` of the
-whole config passed the allow-list (gaia_app/utils/targets.py), and filled from the checkpoint's tensors
-(read weights-only, gaia_app/lit/checkpoint.py). No objective, optimiser or frozen loss network is built, and
+the video decoder's EMA weights), so they are built from their own sub-configs and filled from the checkpoint's
+tensors (read weights-only, gaia_app/utils/checkpoint_io.py). Every `_target_` of the whole config must name a
+path in the allow-list (gaia_app/utils/targets.py), and those of the nets built here must resolve to nets and
+encoders of gaia_app (as in shipped weights): the training objective's module is named, never imported. No objective, optimiser or frozen loss network is built, and
 nothing of the checkpoint is executed. `generate.py mode=export` writes the same nets as shipped weights.
 """
 
@@ -16,8 +17,9 @@ from typing import Any
 import torch
 from torch import nn
 
-from gaia_app.lit.checkpoint import model_config, read_checkpoint
-from gaia_app.utils.shipped import build
+from gaia_app.utils.checkpoint_io import read_checkpoint
+from gaia_app.utils.shipped import SHIPPED_TARGETS, build
+from gaia_app.utils.targets import check_targets
 
 # component → (the LightningModule its checkpoint comes from, {net key of the model config: state-dict prefix})
 COMPONENTS = {
@@ -25,6 +27,10 @@ COMPONENTS = {
     "world_model": ("gaia_app.lit.gaia1_world_model.WorldModelModule", {"net": "net.", "text_encoder": "text_encoder."}),
     # generation samples with the EMA weights (GAIA-1 §4.3); the EMA copy has the net's own names
     "video_decoder": ("gaia_app.lit.gaia1_video_decoder.VideoDecoderModule", {"net": "ema.module."}),
+    # GAIA-2: the video tokenizer without its discriminator, the latent world model with its caption encoder
+    "video_tokenizer": ("gaia_app.lit.gaia2_video_tokenizer.VideoTokenizerModule", {"net": "net."}),
+    "latent_world_model": ("gaia_app.lit.gaia2_world_model.LatentWorldModelModule",
+                           {"net": "net.", "text_encoder": "text_encoder."}),
 }
 
 
@@ -36,7 +42,11 @@ def checkpoint_nets(path: str | Path, component: str, role: str,
     TypeError naming both; tensors that do not fit the stored config are a ValueError naming the file.
     """
     checkpoint = read_checkpoint(path, map_location="cpu")
-    config = model_config(checkpoint, path)
+    config = (checkpoint.get("hyper_parameters") or {}).get("model_cfg")
+    if config is None:
+        raise KeyError(f"checkpoint '{path}' has no hyper_parameters.model_cfg; was it written by gaia_app's train.py?")
+    where = f"checkpoint '{path}': hyper_parameters.model_cfg"
+    check_targets(config, where, resolve=False)
     module, prefixes = COMPONENTS[component]
     if config.get("_target_") != module:
         held = str(config.get("_target_", "unknown")).rsplit(".", 1)[-1]
@@ -46,6 +56,7 @@ def checkpoint_nets(path: str | Path, component: str, role: str,
     for key, prefix in prefixes.items():
         if config.get(key) is None:  # e.g. a world model trained without a text encoder
             continue
+        check_targets(config[key], f"{where}.{key}", SHIPPED_TARGETS)
         net = build(config[key])
         part = {name[len(prefix):]: value for name, value in state.items() if name.startswith(prefix)}
         try:

@@ -24,20 +24,13 @@ from gaia_app.data.latent_cache import LatentClip
 from gaia_app.data.latent_windows import collate_latent_windows, latent_window
 from gaia_app.data.metadata import BUCKETS, VOCABULARIES, MetadataEncoder
 from gaia_app.diffusion.flow_matching import FlowSampler
-from gaia_app.lit.checkpoint import load_module
-from gaia_app.lit.gaia2_video_tokenizer import VideoTokenizerModule
-from gaia_app.lit.gaia2_world_model import LatentWorldModelModule, batch_conditions
-from gaia_app.models.gaia2.conditioning import WorldConditions
+from gaia_app.models.gaia2.conditioning import WorldConditions, batch_conditions, caption_vector
+from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
+from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer
+from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
 from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
 from gaia_app.pipelines.gaia2_world_model import Guidance, LatentWorldModelPipeline
-
-
-def load_checkpoint(path: str | Path, kind: type, key: str, device: str) -> Any:
-    """The module in `path`, checked to be a `kind` (the error names the config key)."""
-    module = load_module(path, map_location=device)
-    if not isinstance(module, kind):
-        raise TypeError(f"{key}={path} holds a {type(module).__name__}; GAIA-2 generation needs a {kind.__name__}")
-    return module.eval()
+from gaia_app.utils.shipped import load_nets, shipped_folder
 
 
 def check_metadata(overrides: Mapping[str, Any], fields: Sequence[str]) -> None:
@@ -73,31 +66,50 @@ def with_labels(clip: LatentClip, first_frame: int = 0, actions: np.ndarray | No
 class Gaia2Pipeline:
     """A GAIA-2 video tokenizer and latent world model with the solver and guidance of one run.
 
+    Built from bare nets: training checkpoints (`from_checkpoints`) or a weights folder (`from_weights`, written by
+    `generate.py model=gaia2 mode=export`); no LightningModule is built.
+
     Args:
-        tokenizer: VideoTokenizerModule (encodes clips, decodes latents).
-        world_model: LatentWorldModelModule (its `latent_scale` maps tokenizer latents to the model's).
+        tokenizer: VideoTokenizer (encodes clips, decodes latents).
+        world_model: LatentWorldModel.
         height, width: the tokenizer's input size (clips are resized and cropped to it).
         sampler, guidance: flow ODE solver and classifier-free guidance (pipelines/gaia2_world_model.py).
         fps: clips are resampled to this rate by timestamps before encoding (None: their own rate).
+        text_encoder: the world model's caption encoder ([[caption]] per sample → (b, 1, m, e)), or None.
+        latent_scale: the world model's scale of tokenizer latents (about 1 / their standard deviation).
     """
 
-    def __init__(self, tokenizer: VideoTokenizerModule, world_model: LatentWorldModelModule, height: int, width: int,
+    def __init__(self, tokenizer: VideoTokenizer, world_model: LatentWorldModel, height: int, width: int,
                  sampler: FlowSampler | None = None, guidance: Guidance | None = None, resize_mode: str = "crop",
-                 fps: float | None = None):
-        self.tokenizer = tokenizer.tokenizer.eval()
-        self.module = world_model
+                 fps: float | None = None, text_encoder: torch.nn.Module | None = None, latent_scale: float = 1.0):
+        self.tokenizer = tokenizer.eval()
+        self.text_encoder = text_encoder
         self.encoder = VideoTokenizerPipeline(self.tokenizer, height, width, resize_mode, fps)
-        self.world = LatentWorldModelPipeline(world_model.model, sampler, guidance)
-        self.metadata = MetadataEncoder(list(world_model.model.conditioner.metadata_fields))
-        self.scale = float(world_model.latent_scale)
+        self.world = LatentWorldModelPipeline(world_model.eval(), sampler, guidance)
+        self.metadata = MetadataEncoder(list(world_model.conditioner.metadata_fields))
+        self.scale = float(latent_scale)
 
     @classmethod
     def from_checkpoints(cls, tokenizer_ckpt: str | Path, world_model_ckpt: str | Path, height: int, width: int,
                          sampler: FlowSampler | None = None, guidance: Guidance | None = None, device: str = "cpu",
                          resize_mode: str = "crop", fps: float | None = None) -> Gaia2Pipeline:
-        tokenizer = load_checkpoint(tokenizer_ckpt, VideoTokenizerModule, "tokenizer_ckpt", device)
-        world_model = load_checkpoint(world_model_ckpt, LatentWorldModelModule, "world_model_ckpt", device)
-        return cls(tokenizer, world_model, height, width, sampler, guidance, resize_mode, fps)
+        """From the training checkpoints of a video tokenizer and a latent world model (read weights-only)."""
+        tokenizer = checkpoint_nets(tokenizer_ckpt, "video_tokenizer", "tokenizer_ckpt", device)[0]["net"]
+        nets, config = checkpoint_nets(world_model_ckpt, "latent_world_model", "world_model_ckpt", device)
+        return cls(tokenizer, nets["net"], height, width, sampler, guidance, resize_mode, fps,
+                   nets.get("text_encoder"), float(config.get("latent_scale", 1.0)))
+
+    @classmethod
+    def from_weights(cls, folder: str | Path, sampler: FlowSampler | None = None, guidance: Guidance | None = None,
+                     device: str = "cpu", resize_mode: str = "crop", fps: float | None = None) -> Gaia2Pipeline:
+        """From a weights folder (video_tokenizer.* and latent_world_model.*, safetensors + YAML); the input size
+        and latent scale come from the folder's info."""
+        folder = shipped_folder(folder)
+        tokenizer, info = load_nets(folder, "video_tokenizer", device)
+        world, world_info = load_nets(folder, "latent_world_model", device)
+        height, width = (int(v) for v in info["image_size"])
+        return cls(tokenizer["net"], world["net"], height, width, sampler, guidance, resize_mode, fps,
+                   world.get("text_encoder"), float(world_info["latent_scale"]))
 
     @property
     def temporal(self) -> int:
@@ -119,8 +131,14 @@ class Gaia2Pipeline:
         batch = collate_latent_windows([latent_window(clip, start, steps, self.metadata)])
         batch = move_data_to_device(batch, self.device)
         with torch.no_grad():
-            cond = batch_conditions(batch, self.module.text_vector(batch))
+            cond = batch_conditions(batch, self.text_vector(batch))
         return batch["mean"] * self.scale, cond
+
+    def text_vector(self, batch: dict[str, Any]) -> torch.Tensor | None:
+        """(b, e) pooled caption features of a latent-window batch, or None without captions or text encoder."""
+        if self.text_encoder is None or "text" not in batch:
+            return None
+        return caption_vector(self.text_encoder, batch["text"]).to(batch["mean"].dtype)
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor) -> torch.Tensor:

@@ -12,6 +12,13 @@ tokenizer without its discriminator, the world model with its text encoder.
 
 exports a world model trained on the tokens of a weights folder's tokenizer (`mode=tokenize weights=gaia1`): the
 tokenizer files (and the probes, unless controllability.probes is given) are copied from that folder unchanged.
+
+    python generate.py model=gaia2 mode=export tokenizer_ckpt=<video tokenizer last.ckpt> \
+        world_model_ckpt=<latent world model last.ckpt> data=synthetic_rig out_dir=my_gaia2_weights
+
+writes a GAIA-2 folder: video_tokenizer.{safetensors,yaml} (the tokenizer without its discriminator; info: the
+input size data.height × data.width) and latent_world_model.{safetensors,yaml} (with its caption encoder; info: the
+latent scale), which `model=gaia2 weights=<folder>` runs generate with.
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from gaia_app.eval.controllability import PROBE_INFO, PROBE_WEIGHTS, load_probes
-from gaia_app.lit.checkpoint import read_checkpoint
+from gaia_app.utils.checkpoint_io import read_checkpoint
 from gaia_app.utils.shipped import export_component, read_config, shipped_folder, weight_files
 
 
@@ -64,6 +71,36 @@ def export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             shutil.copyfile(Path(probes) / name, out / "probes" / name)
         results["probes"] = str(out / "probes")
     return results
+
+
+def checked_checkpoint(path: str, role: str, module: str) -> dict[str, Any]:
+    """The checkpoint dict of `path` (read weights-only), refused with a message naming `role` unless its model is
+    a `module` (e.g. "VideoTokenizerModule")."""
+    checkpoint = read_checkpoint(path)
+    target = str((checkpoint.get("hyper_parameters") or {}).get("model_cfg", {}).get("_target_", "unknown"))
+    if target.rsplit(".", 1)[-1] != module:
+        raise TypeError(f"{role}={path} holds a {target.rsplit('.', 1)[-1]} checkpoint, expected a {module}")
+    return checkpoint
+
+
+def export_gaia2(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """A GAIA-2 weights folder in `cfg.out_dir` from `cfg.tokenizer_ckpt` and `cfg.world_model_ckpt`."""
+    for key in ("tokenizer_ckpt", "world_model_ckpt"):
+        if not cfg.get(key):
+            raise ValueError(f"model=gaia2 mode=export needs {key}=<checkpoint of a GAIA-2 "
+                             f"{'video tokenizer' if key == 'tokenizer_ckpt' else 'latent world model'}>")
+    out = Path(cfg.out_dir)
+    tokenizer = checked_checkpoint(cfg.tokenizer_ckpt, "tokenizer_ckpt", "VideoTokenizerModule")
+    world_model = checked_checkpoint(cfg.world_model_ckpt, "world_model_ckpt", "LatentWorldModelModule")
+    model_cfg = world_model["hyper_parameters"]["model_cfg"]
+    nets = ["net"] + (["text_encoder"] if model_cfg.get("text_encoder") else [])
+    return {"out_dir": str(out),
+            "video_tokenizer": export_component(tokenizer, out, "video_tokenizer", ["net"],
+                                                {"image_size": [int(cfg.data.height), int(cfg.data.width)]},
+                                                cfg.export_dtype),
+            "latent_world_model": export_component(world_model, out, "latent_world_model", nets,
+                                                   {"latent_scale": float(model_cfg.get("latent_scale", 1.0))},
+                                                   cfg.export_dtype)}
 
 
 def export_decoder(checkpoint: dict[str, Any], out: Path, dtype: str, sampler: str | None = None,

@@ -52,15 +52,27 @@ GAIA2_MODES = ("scratch", "rollout", "inpaint", "edit")
 
 
 def load_gaia2(cfg: DictConfig) -> Gaia2Pipeline:
-    """The two checkpoints of `cfg` with its solver and guidance."""
+    """The GAIA-2 nets of `cfg` (a weights folder, or the two training checkpoints) with its solver and guidance."""
+    g = cfg.model
+    solver = (instantiate(g.sampler), instantiate(g.guidance))
+    resize_mode = cfg.data.get("resize_mode", "crop")
+    if cfg.get("weights"):
+        given = [key for key in ("tokenizer_ckpt", "world_model_ckpt") if cfg.get(key)]
+        if given:
+            raise ValueError(f"weights={cfg.weights} replaces {', '.join(given)}; give one or the other")
+        pipeline = Gaia2Pipeline.from_weights(cfg.weights, *solver, cfg.device, resize_mode, cfg.fps)
+        size = (pipeline.encoder.height, pipeline.encoder.width)
+        if size != (cfg.data.height, cfg.data.width):
+            raise ValueError(f"weights={cfg.weights}: its video tokenizer was trained on {size} frames, but "
+                             f"data.height × data.width is {(cfg.data.height, cfg.data.width)}; set them to match")
+        return pipeline
     for key in ("tokenizer_ckpt", "world_model_ckpt"):
         if not cfg.get(key):
             raise ValueError(f"model=gaia2 mode={cfg.mode} needs {key}=<checkpoint of a GAIA-2 "
-                             f"{'video tokenizer' if key == 'tokenizer_ckpt' else 'latent world model'}>")
-    g = cfg.model
+                             f"{'video tokenizer' if key == 'tokenizer_ckpt' else 'latent world model'}> "
+                             "(or weights=<folder written by model=gaia2 mode=export>)")
     return Gaia2Pipeline.from_checkpoints(cfg.tokenizer_ckpt, cfg.world_model_ckpt, cfg.data.height, cfg.data.width,
-                                          instantiate(g.sampler), instantiate(g.guidance), cfg.device,
-                                          cfg.data.get("resize_mode", "crop"), cfg.fps)
+                                          *solver, cfg.device, resize_mode, cfg.fps)
 
 
 def latent_steps(cfg: DictConfig) -> int:

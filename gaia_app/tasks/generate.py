@@ -32,17 +32,16 @@ from gaia_app.data.names import inside
 from gaia_app.data.token_cache import segment_done, write_segment
 from gaia_app.data.transforms import to_float, to_uint8
 from gaia_app.data.video_io import write_video
-from gaia_app.lit.checkpoint import load_module
-from gaia_app.lit.gaia1_tokenizer import ImageTokenizerModule
-from gaia_app.lit.gaia2_video_tokenizer import VideoTokenizerModule
 from gaia_app.pipelines.gaia1_tokenizer import (ReconstructionOutput, TokenCachePipeline, TokenizerReconstructionPipeline,
                                                 camera_names, segment_names)
 from gaia_app.models.gaia1.tokenizer import ImageTokenizer
+from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer
+from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
 from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
 from gaia_app.utils.shipped import load_nets, shipped_folder
 from gaia_app.tasks.controllability import controllability
 from gaia_app.tasks.evaluate import evaluate
-from gaia_app.tasks.export import export
+from gaia_app.tasks.export import export, export_gaia2
 from gaia_app.tasks.showcase import showcase
 from gaia_app.tasks.gaia2_evaluate import gaia2_evaluate
 from gaia_app.tasks.gaia2_generate import GAIA2_MODES, gaia2_generate
@@ -70,16 +69,16 @@ def log_reconstruction(rec: rr.RecordingStream, name: str, camera: str, video: t
         rec.log(f"/{name}/{camera}/psnr", rr.Scalars(float(out.psnr[view, t])))
 
 
-def reconstruct(cfg: DictConfig, module: ImageTokenizerModule, run_dir: Path) -> dict[str, Any]:
+def reconstruct(cfg: DictConfig, tokenizer: ImageTokenizer, run_dir: Path) -> dict[str, Any]:
     """Tokenize and reconstruct `num_clips` validation clips; write one mp4 per camera, tokens and a .rrd."""
     datamodule = instantiate(cfg.data)
     datamodule.setup("validate")
     clips = datamodule.val_clips
-    pipeline = TokenizerReconstructionPipeline(module.tokenizer)
+    pipeline = TokenizerReconstructionPipeline(tokenizer)
     rec = rr.RecordingStream("gaia_app", recording_id=f"generate-{run_dir.name}")
     rec.save(str(run_dir / "reconstruction.rrd"))
     results: dict[str, Any] = {}
-    codebook = module.codebook_embeddings().detach().cpu()
+    codebook = tokenizer.quantizer.codebook.weight.detach().cpu()
     for i in tqdm(range(min(cfg.num_clips, len(clips))), desc="reconstruct"):
         clip = fit_to_resolution(clips[i], datamodule.height, datamodule.width, datamodule.resize_mode)
         video = to_float(torch.from_numpy(clip.frames))
@@ -153,38 +152,42 @@ def tokenize(cfg: DictConfig, tokenizer: ImageTokenizer, run_dir: Path) -> dict[
     return cache_splits(cfg, "tokenize", writers, manifest)
 
 
-def encode(cfg: DictConfig, module: VideoTokenizerModule, run_dir: Path) -> dict[str, Any]:
+def encode(cfg: DictConfig, tokenizer: VideoTokenizer, run_dir: Path) -> dict[str, Any]:
     """Encode every multi-camera clip of `cfg.splits` once into `cfg.out_dir/<split>/` (latent_cache.py layout):
     GAIA-2 tokenizer latents with every condition beside them, for the latent world model (GAIA-2 report, tokenizer)."""
     def writers(datamodule: Any, out_dir: Path) -> tuple[Callable, Callable]:
-        pipeline = VideoTokenizerPipeline(module.tokenizer.to(cfg.device), datamodule.height, datamodule.width,
+        pipeline = VideoTokenizerPipeline(tokenizer, datamodule.height, datamodule.width,
                                           datamodule.resize_mode, cfg.fps)
         return (lambda clip: clip_done(out_dir, clip.clip_id)), (lambda clip: write_latent_clip(out_dir, pipeline.encode(clip)))
 
     def manifest(datamodule: Any) -> dict[str, Any]:
-        return cache_manifest("gaia2_latents", tokenizer_sha256=weights_sha256(module.tokenizer), fps=cfg.fps,
+        return cache_manifest("gaia2_latents", tokenizer_sha256=weights_sha256(tokenizer), fps=cfg.fps,
                               image_size=[datamodule.height, datamodule.width], resize_mode=datamodule.resize_mode)
 
     return cache_splits(cfg, "encode", writers, manifest)
 
 
-MODES = {"reconstruct": (ImageTokenizerModule, reconstruct), "tokenize": (ImageTokenizerModule, tokenize),
-         "encode": (VideoTokenizerModule, encode)}
+# mode → (the checkpoint component it runs, the run)
+MODES = {"reconstruct": ("tokenizer", reconstruct), "tokenize": ("tokenizer", tokenize),
+         "encode": ("video_tokenizer", encode)}
 
 
 def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """The single-checkpoint modes of `MODES` on `cfg.ckpt` (mode=tokenize also on the tokenizer of `cfg.weights`)."""
+    """The single-checkpoint modes of `MODES` on the tokenizer net of `cfg.ckpt` (built from the checkpoint's
+    tensors and checked config, pipelines/checkpoint_nets.py), or mode=tokenize / reconstruct on the tokenizer of
+    `cfg.weights`."""
     if cfg.mode not in MODES:
         raise ValueError(f"mode={cfg.mode}: expected one of {sorted(MODES) + list(ROLLOUT_MODES) + ['controllability', 'evaluate', 'export', 'showcase']}")
-    if cfg.mode == "tokenize" and cfg.get("weights"):
-        return tokenize(cfg, shipped_tokenizer(cfg), run_dir)
+    if cfg.mode in ("tokenize", "reconstruct") and cfg.get("weights"):
+        return MODES[cfg.mode][1](cfg, shipped_tokenizer(cfg), run_dir)
     if not cfg.ckpt:
         raise ValueError(f"mode={cfg.mode} needs ckpt=<checkpoint of a trained tokenizer>")
-    module_type, run = MODES[cfg.mode]
-    module = load_module(cfg.ckpt, map_location=cfg.device)
-    if not isinstance(module, module_type):
-        raise TypeError(f"mode={cfg.mode} needs a {module_type.__name__} checkpoint; {cfg.ckpt} holds {type(module).__name__}")
-    return run(cfg, module.tokenizer if cfg.mode == "tokenize" else module, run_dir)
+    component, run = MODES[cfg.mode]
+    try:
+        nets, _ = checkpoint_nets(cfg.ckpt, component, "ckpt", cfg.device)
+    except TypeError as error:
+        raise TypeError(f"mode={cfg.mode}: {error}") from None
+    return run(cfg, nets["net"], run_dir)
 
 
 def shipped_tokenizer(cfg: DictConfig) -> ImageTokenizer:
@@ -201,12 +204,15 @@ def shipped_tokenizer(cfg: DictConfig) -> ImageTokenizer:
 
 
 def run_gaia2(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """The GAIA-2 modes: generation (tasks/gaia2_generate.py) and evaluation (tasks/gaia2_evaluate.py)."""
+    """The GAIA-2 modes: generation (tasks/gaia2_generate.py), evaluation (tasks/gaia2_evaluate.py) and export of a
+    weights folder (tasks/export.py)."""
     if cfg.mode in GAIA2_MODES:
         return gaia2_generate(cfg, run_dir)
     if cfg.mode == "evaluate":
         return gaia2_evaluate(cfg, run_dir)
-    raise ValueError(f"model=gaia2 mode={cfg.mode}: expected one of {list(GAIA2_MODES) + ['evaluate']} "
+    if cfg.mode == "export":
+        return export_gaia2(cfg, run_dir)
+    raise ValueError(f"model=gaia2 mode={cfg.mode}: expected one of {list(GAIA2_MODES) + ['evaluate', 'export']} "
                      "(mode=encode runs on a video tokenizer ckpt without model=gaia2)")
 
 

@@ -15,7 +15,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
-from gaia_app.lit.checkpoint import check_checkpoint_file
+from gaia_app.utils.checkpoint_io import check_checkpoint_file
 from gaia_app.lit.compile import CompileNet
 from gaia_app.lit.strategies import build_strategy
 from gaia_app.utils.run_dir import save_resolved_config
@@ -33,7 +33,7 @@ def instantiate_list(node: DictConfig | None) -> list[Any]:
 
 def resume_path(ckpt_path: str | None, run_dir: Path) -> str | None:
     """`ckpt_path=last` resumes from this run dir's last.ckpt if present (and says so when it starts fresh); a
-    path must exist. The checkpoint is checked to load safely (weights only, lit/checkpoint.py) before Lightning
+    path must exist. The checkpoint is checked to load safely (weights only, utils/checkpoint_io.py) before Lightning
     reads it."""
     if ckpt_path in (None, ""):
         return None

@@ -86,7 +86,9 @@ def export_component(checkpoint: Mapping[str, Any], folder: str | Path, componen
         prefix = (prefixes or {}).get(key, f"{key}.")
         part = {f"{key}.{name[len(prefix):]}": value for name, value in checkpoint["state_dict"].items()
                 if name.startswith(prefix)}
-        if not part:
+        if not part and build(configs[key]).state_dict():
+            # a net with no tensors of its own (a frozen text encoder that loads its weights from its package)
+            # is exported as its config alone; any other net must have its tensors in the checkpoint
             raise KeyError(f"checkpoint's state_dict has no tensors under '{prefix}'")
         state.update({name: stored(value, STORAGE_TYPES[dtype]) for name, value in part.items()})
     data = save_tensors(state)

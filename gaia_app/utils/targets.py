@@ -23,21 +23,23 @@ class UnsafeTargetError(ValueError):
     """A config from a file names a `_target_` outside the allowed packages."""
 
 
-def check_targets(node: Any, where: str, allowed: Sequence[str] = MODEL_TARGETS) -> None:
+def check_targets(node: Any, where: str, allowed: Sequence[str] = MODEL_TARGETS, resolve: bool = True) -> None:
     """Raise UnsafeTargetError (naming `where` and the key path) if any `_target_` at any depth of `node` (plain
-    dicts and lists, or OmegaConf containers) is not a class or function defined inside an `allowed` package."""
+    dicts and lists, or OmegaConf containers) is not a class or function defined inside an `allowed` package.
+    resolve=False checks the dotted paths only and imports nothing (for parts of a config that will not be built)."""
     if isinstance(node, Mapping):
         if "_target_" in node:
-            check_target(node["_target_"], f"{where}._target_", allowed)
+            check_target(node["_target_"], f"{where}._target_", allowed, resolve)
         for key, value in node.items():
-            check_targets(value, f"{where}.{key}", allowed)
+            check_targets(value, f"{where}.{key}", allowed, resolve)
     elif isinstance(node, Sequence) and not isinstance(node, (str, bytes)):
         for i, value in enumerate(node):
-            check_targets(value, f"{where}[{i}]", allowed)
+            check_targets(value, f"{where}[{i}]", allowed, resolve)
 
 
-def check_target(target: Any, where: str, allowed: Sequence[str] = MODEL_TARGETS) -> None:
-    """One `_target_` value: a dotted path into an allowed package, resolving to a class or function defined there."""
+def check_target(target: Any, where: str, allowed: Sequence[str] = MODEL_TARGETS, resolve: bool = True) -> None:
+    """One `_target_` value: a dotted path into an allowed package, resolving to a class or function defined there
+    (resolve=False: the path alone)."""
     from hydra._internal.utils import _locate
 
     prefixes = tuple(allowed)
@@ -45,6 +47,8 @@ def check_target(target: Any, where: str, allowed: Sequence[str] = MODEL_TARGETS
               f"functions of {', '.join(p.rstrip('.') for p in prefixes)}"
     if not isinstance(target, str) or not target.startswith(prefixes):
         raise UnsafeTargetError(refused)
+    if not resolve:
+        return
     try:
         obj = _locate(target)
     except ImportError as error:

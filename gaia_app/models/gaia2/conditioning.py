@@ -19,8 +19,9 @@ the action for a learned null action, so a dropped condition has exactly no effe
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import torch
 from einops import rearrange
@@ -254,3 +255,23 @@ class WorldConditioner(nn.Module):
             tokens.append(self.metadata[name](index) + field_id)
         return torch.stack(tokens, dim=1)
 
+
+def batch_conditions(batch: dict[str, Any], text: torch.Tensor | None = None) -> WorldConditions:
+    """WorldConditions of a latent-window batch (absent labels stay None)."""
+    if "intrinsics" not in batch:
+        raise ValueError("latent batch has no camera intrinsics/extrinsics: the GAIA-2 world model needs the rig "
+                         "(conditions.json 'cameras' of the latent cache)")
+    agents = None
+    if "agents_centre" in batch:
+        agents = AgentBoxes3d(batch["agents_centre"], batch["agents_size"], batch["agents_yaw"],
+                              batch["agents_category"], batch["agents_mask"])
+    return WorldConditions(batch["intrinsics"], batch["extrinsics"], tuple(batch["image_size"]),
+                           timestamps=batch.get("timestamps"), actions=batch.get("actions"), agents=agents,
+                           metadata=batch.get("metadata") or None, text=text)
+
+
+def caption_vector(text_encoder: Callable[[list[list[str]]], torch.Tensor], captions: Sequence[str]) -> torch.Tensor:
+    """(b, e) text vector of one caption per sample: the mean of its token features (the report conditions on a
+    CLIP-like vector; a token encoder such as MiniLM is mean-pooled into one). text_encoder: [[caption]] per
+    sample → (b, 1, m, e)."""
+    return text_encoder([[caption] for caption in captions])[:, 0].mean(dim=1)
