@@ -51,3 +51,35 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+CLIP_WIDTH, CLIP_PROJECTION = 32, 24  # the tiny CLIP's hidden size and text-embedding width
+
+
+def save_tiny_clip(directory: Path) -> Path:
+    """A tiny random CLIP text tower with projection and a character-level CLIP tokenizer, saved like a user's
+    `save_pretrained` directory (the loading path of `CLIPTextEncoder`, with no download)."""
+    import json
+
+    from transformers import CLIPTextConfig, CLIPTextModelWithProjection, CLIPTokenizer
+
+    directory.mkdir(parents=True, exist_ok=True)
+    symbols = "abcdefghijklmnopqrstuvwxyz0123456789.,!?'-"
+    vocab = {"<|startoftext|>": 0, "<|endoftext|>": 1}
+    for symbol in symbols:
+        vocab[symbol] = len(vocab)
+        vocab[f"{symbol}</w>"] = len(vocab)
+    (directory / "vocab.json").write_text(json.dumps(vocab))
+    (directory / "merges.txt").write_text("#version: 0.2\n")
+    CLIPTokenizer(str(directory / "vocab.json"), str(directory / "merges.txt")).save_pretrained(directory)
+    torch.manual_seed(0)
+    config = CLIPTextConfig(vocab_size=len(vocab), hidden_size=CLIP_WIDTH, intermediate_size=64, num_hidden_layers=2,
+                            num_attention_heads=4, max_position_embeddings=77, projection_dim=CLIP_PROJECTION,
+                            bos_token_id=0, eos_token_id=1, pad_token_id=1)
+    CLIPTextModelWithProjection(config).save_pretrained(directory)
+    return directory
+
+
+@pytest.fixture(scope="session")
+def tiny_clip_dir(tmp_path_factory) -> Path:
+    return save_tiny_clip(tmp_path_factory.mktemp("clip"))

@@ -10,18 +10,21 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from gaia_app.lit.base import GaiaModule
-from tests.conftest import CONF_DIR, compose_config
+from tests.conftest import CLIP_PROJECTION, CONF_DIR, compose_config
 
 GROUPS = ["data", "model", "model/net", "model/optim", "model/sched", "trainer", "debug", "logger", "callbacks",
           "paths", "extras", "hydra"]
 EXPERIMENTS = sorted(str(p.relative_to(CONF_DIR / "experiment").with_suffix("")) for p in (CONF_DIR / "experiment").rglob("*.yaml"))
 
 
-def shrink(experiment: str) -> list[str]:
-    """What keeps instantiation cheap for an experiment: its family's tiny net and a CPU trainer."""
+def shrink(experiment: str, clip_dir: Path | None = None) -> list[str]:
+    """What keeps instantiation cheap for an experiment: its family's tiny net and a CPU trainer; the local CLIP
+    of GAIA-2's paper run is the tiny test CLIP in `clip_dir`."""
     if experiment.startswith("gaia2/"):
         net = "gaia2_world_model_tiny" if "world_model" in experiment else "gaia2_video_tokenizer_tiny"
-        return [f"model/net={net}", "trainer=tiny"]
+        clip = ([f"model.text_encoder.path={clip_dir}", f"model.text_encoder.dim={CLIP_PROJECTION}"]
+                if experiment.endswith("world_model_paper") else [])
+        return [f"model/net={net}", "trainer=tiny", *clip]
     family = next((f for f in ("world_model", "video_decoder") if f in experiment), "tokenizer")
     family = "world_model" if experiment.endswith("scaling") else family  # a sweep over world-model sizes
     net = f"gaia1_{family}_tiny"
@@ -74,8 +77,8 @@ def test_every_data_option_instantiates(option: str, tmp_path: Path, clip_root: 
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
-def test_every_experiment_instantiates(experiment: str, tmp_path: Path, clip_root: Path) -> None:
-    cfg = compose_config("train", [f"experiment={experiment}", *shrink(experiment)], tmp_path)
+def test_every_experiment_instantiates(experiment: str, tmp_path: Path, clip_root: Path, tiny_clip_dir: Path) -> None:
+    cfg = compose_config("train", [f"experiment={experiment}", *shrink(experiment, tiny_clip_dir)], tmp_path)
     if cfg.data.get("source", {}).get("_target_", "").endswith("ClipFolderDataset"):
         cfg.data.source.root = str(clip_root)
         cfg.data.source.min_frames = min(cfg.data.source.min_frames, 16)  # the test clips have 16 frames

