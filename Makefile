@@ -36,7 +36,8 @@ install-dev: $(VENV)/.installed-dev
 # The recipe's protocol (gaia_app/tasks/reproduce.py): 4 context frames, 1.25 s of future, guidance scale 1.5
 # (3 for rollouts prompted with text).
 PROTOCOL := context.frames=4 seconds=1.25 guidance.scale=1.5 guidance.text_scale=3
-DEMO_CONTROLLABILITY := controllability.contexts=8 controllability.text_repeats=8 controllability.real_clips=32 \
+DEMO_CONTROLLABILITY := controllability.contexts=8 controllability.text_repeats=8 controllability.floor_repeats=32 \
+	controllability.real_clips=32 \
 	'controllability.prompts.weather=[clear,snow]'
 demo: install
 	$(PY) generate.py mode=showcase weights=gaia1 $(PROTOCOL) upsample=0 decoder_steps=16 decoder_blend.probability=0 \
@@ -55,7 +56,8 @@ TRAIN_CKPTS := tokenizer_ckpt=$(TRAIN_DIR)/tokenizer/checkpoints/last.ckpt \
 	world_model_ckpt=$(TRAIN_DIR)/world_model/checkpoints/last.ckpt \
 	decoder_ckpt=$(TRAIN_DIR)/video_decoder/checkpoints/last.ckpt
 TRAIN_CONTROLLABILITY := controllability.probe_clips=48 controllability.probe_steps=400 controllability.contexts=4 \
-	controllability.text_repeats=2 controllability.real_clips=24 'controllability.prompts.weather=[clear,snow]'
+	controllability.text_repeats=2 controllability.floor_repeats=4 controllability.real_clips=24 \
+	'controllability.prompts.weather=[clear,snow]'
 demo-train: install
 	$(PY) train.py experiment=gaia1/demo/tokenizer hydra.run.dir=$(TRAIN_DIR)/tokenizer ckpt_path=last
 	$(PY) generate.py mode=tokenize ckpt=$(TRAIN_DIR)/tokenizer/checkpoints/last.ckpt data=synthetic \

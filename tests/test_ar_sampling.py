@@ -125,3 +125,17 @@ def test_text_scale_guides_prompted_rollouts_and_scale_the_others(net: WorldMode
     assert split.for_rollout(prompted=False) is split and split.for_rollout(prompted=True).scale == 6.0
     with pytest.raises(ValueError, match=r"guidance.text_scale=-1.0: expected a finite number ≥ 0"):
         ClassifierFreeGuidance(scale=1.0, text_scale=-1.0)
+
+
+def test_nucleus_keeps_the_fewest_likely_tokens_that_reach_p() -> None:
+    """top_p: probabilities (0.5, 0.3, 0.15, 0.05): p = 0.8 keeps tokens 0 and 1 (renormalised 5 : 3), p = 0.81
+    adds token 2, a tiny p keeps the most likely token alone."""
+    logits = torch.tensor([0.5, 0.3, 0.15, 0.05]).log().repeat(20000, 1)
+    generator = torch.Generator().manual_seed(0)
+    drawn = TokenPicker("top_p", p=0.8)(logits, generator)
+    assert set(drawn.tolist()) == {0, 1}
+    assert abs((drawn == 0).float().mean().item() - 0.5 / 0.8) < 0.02
+    assert set(TokenPicker("top_p", p=0.81)(logits, generator).tolist()) == {0, 1, 2}
+    assert set(TokenPicker("top_p", p=1e-6)(logits, generator).tolist()) == {0}
+    with pytest.raises(ValueError, match="0 < p ≤ 1"):
+        TokenPicker("top_p", p=0.0)

@@ -183,7 +183,7 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
     args = ["mode=controllability", "seconds=0.5", "controllability.probe_clips=4", "controllability.probe_steps=3",
             "controllability.contexts=2", "controllability.commands=[[brake,left],[keep,right]]",
             "controllability.prompts.time_of_day=[night]", "~controllability.prompts.weather",
-            "controllability.text_repeats=2", "controllability.real_clips=6"]
+            "controllability.text_repeats=2", "controllability.floor_repeats=3", "controllability.real_clips=6"]
     results = run(checkpoints, tmp_path / "first", *args, decoder=False)
     rows = results["actions"]["rows"]
     assert set(rows) == {"ceiling", "tokenized", "model", "floor", "reference"}
@@ -199,6 +199,7 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
     assert text["targets"] == ["time_of_day=night"] and set(text["rows"]) == {"ceiling", "tokenized", "model", "floor"}
     model = text["rows"]["model"]["time_of_day=night"]
     assert model["n"] == 2 and 0 <= model["low"] <= model["mean"] <= model["high"] <= 1
+    assert text["rows"]["floor"]["time_of_day=night"]["n"] == 3 == text["floor_rollouts"]  # batches of 2, then 1
     table = (tmp_path / "first" / "controllability.md").read_text()
     assert "| model (action-conditioned) |" in table and "| chance | 0.33 |" in table and "probe check" in table
     assert json.loads((tmp_path / "first" / "controllability.json").read_text())["actions"]["contexts"] == 2

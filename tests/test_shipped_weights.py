@@ -63,7 +63,8 @@ def test_generation_and_controllability_run_from_weights_alone(shipped: Path, tm
     assert (tmp_path / "a" / "grid.mp4").is_file() and results["fps"] == 6.25
     args = ["mode=controllability", f"weights={shipped}", "seconds=0.5", "controllability.contexts=2",
             "controllability.commands=[[brake,left],[keep,right]]", "controllability.prompts.time_of_day=[night]",
-            "~controllability.prompts.weather", "controllability.text_repeats=1", "controllability.real_clips=3",
+            "~controllability.prompts.weather", "controllability.text_repeats=1", "controllability.floor_repeats=1",
+            "controllability.real_clips=3",
             "extras.print_config=false", *SIZE]
     results = generate(compose_config("generate", args, tmp_path / "c"))["results"]
     assert results["probes"]["image_size"] == [32, 48]  # the shipped probes, not retrained ones
@@ -250,3 +251,22 @@ def test_weights_with_a_video_decoder_decode_with_its_ema_weights(checkpoints, t
     sampler = Gaia1Pipeline.from_weights(tmp_path / "mean").decoder.sampler
     assert type(sampler).__name__ == "OneStepMeanSampler" and sampler.draws == 3
     assert Gaia1Pipeline.from_weights(tmp_path / "mean", decoder_sampler="ddim").decoder.sampler.steps == 3
+
+
+def test_floor_calibration_reads_real_clips_and_each_picker(shipped: Path, tmp_path: Path, monkeypatch) -> None:
+    """benchmarks/floor_calibration.py: the probe's reading of real clips and of unprompted rollouts per picker."""
+    import json
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import floor_calibration
+
+    monkeypatch.setattr(sys, "argv", ["floor_calibration.py", f"--weights={shipped}", "--rollouts=3", "--batch=2",
+                                      "--real-clips=2", "--seconds=0.5", "--pickers=top_k,top_p", f"--out={tmp_path}"])
+    floor_calibration.main()
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert list(results["rows"]) == ["real clips (default mix)", "real clips through the tokenizer", "top_k k=50",
+                                     "top_p p=0.9"]
+    assert results["tv"]["real clips (default mix)"] == {"time_of_day": 0.0, "weather": 0.0}
+    night = results["rows"]["top_p p=0.9"]["time_of_day"]["night"]
+    assert 0 <= night[1] <= night[0] <= night[2] <= 1 and "| top_k k=50 |" in (tmp_path / "results.md").read_text()

@@ -20,23 +20,28 @@ from gaia_app.diffusion.guidance import ClassifierFreeGuidance
 from gaia_app.models.gaia1.world_model import Conditions, WorldModel
 from gaia_app.nn.attention import KVCache
 
-MODES = ("argmax", "sample", "top_k")
+MODES = ("argmax", "sample", "top_k", "top_p")
 
 
 @dataclass(frozen=True)
 class TokenPicker:
-    """Chooses next tokens from logits: `argmax`, `sample` (full distribution) or `top_k` (GAIA-1 §5.1, Fig. 6).
+    """Chooses next tokens from logits: `argmax`, `sample` (full distribution), `top_k` (GAIA-1 §5.1, Fig. 6) or
+    `top_p` (nucleus sampling: the fewest most likely tokens whose probability reaches p).
 
-    temperature divides the logits before sampling; k is the top-k cut-off.
+    temperature divides the logits before sampling; k is the top-k cut-off, p the nucleus mass. A fixed k keeps the
+    same number of tokens whatever the entropy, so it trims broad distributions (detailed daylight texture) much more
+    than peaked ones (dark night frames) and shifts unconditional samples towards the peaked scenes; the nucleus
+    adapts its size to each distribution (docs/reference.md, the floor calibration table).
     """
 
     mode: str = "top_k"
     k: int = 50
     temperature: float = 1.0
+    p: float = 0.9
 
     def __post_init__(self) -> None:
-        if self.mode not in MODES or self.k < 1 or self.temperature <= 0:
-            raise ValueError(f"TokenPicker: mode in {MODES}, k ≥ 1, temperature > 0; got {self}")
+        if self.mode not in MODES or self.k < 1 or self.temperature <= 0 or not 0 < self.p <= 1:
+            raise ValueError(f"TokenPicker: mode in {MODES}, k ≥ 1, temperature > 0, 0 < p ≤ 1; got {self}")
 
     def __call__(self, logits: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """(b, V) logits → (b,) int64 tokens."""
@@ -47,7 +52,19 @@ class TokenPicker:
             top, index = logits.topk(min(self.k, logits.shape[-1]), dim=-1)
             choice = torch.multinomial(top.softmax(-1), 1, generator=generator)
             return index.gather(-1, choice).squeeze(-1)
+        if self.mode == "top_p":
+            return nucleus_sample(logits, self.p, generator)
         return torch.multinomial(logits.softmax(-1), 1, generator=generator).squeeze(-1)
+
+
+def nucleus_sample(logits: torch.Tensor, p: float, generator: torch.Generator | None = None) -> torch.Tensor:
+    """(b, V) logits → (b,) tokens drawn from the smallest set of most likely tokens whose probability reaches p
+    (the most likely token is always kept), renormalised."""
+    probs, index = logits.softmax(-1).sort(dim=-1, descending=True)
+    before = probs.cumsum(-1) - probs  # mass of the more likely tokens
+    kept = probs.masked_fill(before >= p, 0.0)
+    choice = torch.multinomial(kept, 1, generator=generator)
+    return index.gather(-1, choice).squeeze(-1)
 
 
 class WindowStream:

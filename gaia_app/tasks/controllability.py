@@ -21,7 +21,8 @@ one run:
    ceiling = real held-out clips that have the value (world drawn uniformly over weather and time of day);
    tokenized = those clips encoded and decoded by the tokenizer (a diagnostic, as above);
    model   = mode=text_only rollouts with the prompt;
-   floor   = unconditional rollouts (one shared set) scored against each target.
+   floor   = unconditional rollouts (one shared set of `controllability.floor_repeats`, generated in batches of
+             text_repeats) scored against each target.
    A rollout (or real clip) reads a value when most of its frames are probed as that value; the table gives
    the share of rollouts that read the prompted value, with Wilson intervals.
 Writes controllability.json, controllability.md and probes/ into the run dir.
@@ -258,8 +259,11 @@ def text_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: torch
     c, rate, (height, width) = cfg.controllability, pipeline.rate, pipeline.image_size
     frames = future_frames(cfg.seconds, rate)
     targets = [(attr, value) for attr, values in c.prompts.items() for value in values]
-    repeats = c.text_repeats
-    floor = rollout_frames(pipeline, None, frames, repeats, None, None, generator)
+    repeats, floor_repeats = c.text_repeats, c.floor_repeats
+    if repeats < 1 or floor_repeats < 1:
+        raise ValueError(f"controllability.text_repeats={repeats}, floor_repeats={floor_repeats}: expected ≥ 1 each")
+    floor = torch.cat([rollout_frames(pipeline, None, frames, min(repeats, floor_repeats - start), None, None, generator)
+                       for start in range(0, floor_repeats, repeats)])
     real = probe_clips(world_clips(cfg.context.seed, c.real_clips, height, width, frames, rate, start=c.contexts,
                                    balanced=True), rate, frames)
     rows: dict[str, dict[str, Any]] = {"ceiling": {}, "tokenized": {}, "model": {}, "floor": {}}
@@ -275,7 +279,8 @@ def text_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: torch
         rows["floor"][key] = share_row(probe, floor, attr, index)
     chance = {f"{attr}={value}": 1.0 / len(ATTRIBUTES[attr]) for attr, value in targets}
     checks = {key: {"probe_reads_it": bool(row and row["frame_accuracy"] >= 0.9)} for key, row in rows["ceiling"].items()}
-    return {"targets": [f"{a}={v}" for a, v in targets], "rollouts_per_prompt": repeats, "chance": chance,
+    return {"targets": [f"{a}={v}" for a, v in targets], "rollouts_per_prompt": repeats,
+            "floor_rollouts": floor_repeats, "chance": chance,
             "rows": rows, "checks": checks}
 
 
@@ -310,7 +315,8 @@ def markdown(results: dict[str, Any]) -> str:
         f"{'yes' if checks[m]['probe_reads_it'] else 'NO'} ({checks[m]['ceiling_over_floor']:.2f}, "
         f"{checks[m]['ceiling_over_reference']:.2f})" for m in CONTRASTS) + " | | |")
     lines += ["", f"Text adherence: share of rollouts ({text['rollouts_per_prompt']} per prompt, generated from the "
-              "prompt alone) whose frames mostly read the prompted value; [95 % Wilson interval].", "",
+              f"prompt alone; {text.get('floor_rollouts', text['rollouts_per_prompt'])} unprompted rollouts for the floor, "
+              "shared by every prompt) whose frames mostly read the prompted value; [95 % Wilson interval].", "",
               "| text adherence | " + " | ".join(text["targets"]) + " |", "|---" * (len(text["targets"]) + 1) + "|"]
     for key, name in TEXT_ROWS.items():
         lines.append(f"| {name} | " + " | ".join(share_cell(text["rows"][key][t]) for t in text["targets"]) + " |")
