@@ -83,3 +83,26 @@ def save_tiny_clip(directory: Path) -> Path:
 @pytest.fixture(scope="session")
 def tiny_clip_dir(tmp_path_factory) -> Path:
     return save_tiny_clip(tmp_path_factory.mktemp("clip"))
+
+
+T5_WIDTH = 32  # the tiny T5's d_model
+
+
+def save_tiny_t5(directory: Path, corpus: list[str]) -> Path:
+    """A tiny random T5 encoder and a word-level tokenizer over `corpus` that appends </s> like T5's, saved like a
+    user's `save_pretrained` directory."""
+    from tokenizers import Tokenizer, models, pre_tokenizers, processors, trainers
+    from transformers import PreTrainedTokenizerFast, T5Config, T5EncoderModel
+
+    directory.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(0)
+    config = T5Config(vocab_size=64, d_model=T5_WIDTH, d_kv=8, d_ff=64, num_layers=2, num_heads=4, pad_token_id=0,
+                      eos_token_id=1, decoder_start_token_id=0)
+    T5EncoderModel(config).save_pretrained(directory)
+    tokenizer = Tokenizer(models.WordLevel(unk_token="<unk>"))
+    tokenizer.pre_tokenizer = pre_tokenizers.Whitespace()
+    tokenizer.train_from_iterator(corpus, trainers.WordLevelTrainer(special_tokens=["<pad>", "</s>", "<unk>"]))
+    tokenizer.post_processor = processors.TemplateProcessing(single="$A </s>", special_tokens=[("</s>", 1)])
+    PreTrainedTokenizerFast(tokenizer_object=tokenizer, pad_token="<pad>", eos_token="</s>",
+                            unk_token="<unk>").save_pretrained(directory)
+    return directory

@@ -20,10 +20,9 @@ from gaia_app.encoders.text import MiniLMTextEncoder, T5TextEncoder, minilm_pack
 from gaia_app.lit.checkpoint import load_module
 from gaia_app.lit.gaia1_world_model import WorldModelModule
 from gaia_app.models.gaia1.world_model import WorldModel
-from tests.conftest import compose_config
+from tests.conftest import T5_WIDTH, compose_config, save_tiny_t5
 
 M = 8  # text tokens per step in the direct tests
-T5_WIDTH = 32
 CAPTIONS = [["turn left", None, "a long caption about the red traffic light ahead at the busy junction"],
             ["turn left", "", "stop"]]
 
@@ -36,22 +35,7 @@ def minilm() -> MiniLMTextEncoder:
 @pytest.fixture(scope="module")
 def t5_dir(tmp_path_factory) -> Path:
     """A tiny random T5 encoder + word-level tokenizer (appends </s> like T5's), saved like a user's directory."""
-    from tokenizers import Tokenizer, models, pre_tokenizers, processors, trainers
-    from transformers import PreTrainedTokenizerFast, T5Config, T5EncoderModel
-
-    directory = tmp_path_factory.mktemp("t5")
-    torch.manual_seed(0)
-    config = T5Config(vocab_size=64, d_model=T5_WIDTH, d_kv=8, d_ff=64, num_layers=2, num_heads=4, pad_token_id=0,
-                      eos_token_id=1, decoder_start_token_id=0)
-    T5EncoderModel(config).save_pretrained(directory)
-    tokenizer = Tokenizer(models.WordLevel(unk_token="<unk>"))
-    tokenizer.pre_tokenizer = pre_tokenizers.Whitespace()
-    corpus = [c for steps in CAPTIONS for c in steps if c]
-    tokenizer.train_from_iterator(corpus, trainers.WordLevelTrainer(special_tokens=["<pad>", "</s>", "<unk>"]))
-    tokenizer.post_processor = processors.TemplateProcessing(single="$A </s>", special_tokens=[("</s>", 1)])
-    PreTrainedTokenizerFast(tokenizer_object=tokenizer, pad_token="<pad>", eos_token="</s>",
-                            unk_token="<unk>").save_pretrained(directory)
-    return directory
+    return save_tiny_t5(tmp_path_factory.mktemp("t5"), [c for steps in CAPTIONS for c in steps if c])
 
 
 def reference(model, tokenizer, captions: list[str], m: int) -> torch.Tensor:
