@@ -173,6 +173,11 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     assert set(results["actions"]["rows"]) == {"real frames, own actions", "tokenized real, own actions",
                                                "model, commanded actions", "model, actions dropped",
                                                "real continuation vs the command"}
+    views = results["cross_view"]
+    assert views["pairs"] == ["front/front_left", "front/front_right"] and views["scenes"] == 2
+    assert set(views["rows"]) == {"real frames (ceiling)", "tokenized real", "model, cameras generated together",
+                                  "model, each camera generated alone (floor)"}
+    assert all(0 <= row["mean"] < 2 and row["n"] == 2 for row in views["rows"].values())
     for row in results["actions"]["rows"].values():
         assert np.isfinite(row["speed_mae"]) and np.isfinite(row["curvature_mae"])
     fidelity = results["fidelity"]
@@ -181,6 +186,7 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     assert all(set(row) == {"psnr", "ssim", "fvmd", "agent_iou"} for row in fidelity["rows"].values())
     table = (tmp_path / "gaia2_evaluation.md").read_text()
     assert "IoU with agent masks" in table and "speed MAE" in table and "held frame (floor)" in table
+    assert "| model, each camera generated alone (floor) |" in table
     assert results["actions"]["scored_frames"] == 7  # 8 generated frames → 7 pairs after the first
 
     # one table with a GAIA-1 evaluation run (its evaluation.json layout, tasks/evaluate.py)

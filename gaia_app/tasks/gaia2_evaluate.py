@@ -21,12 +21,18 @@ Fidelity (every camera; the metrics of `evaluate.metrics`, shared with GAIA-1's 
 code, tasks/evaluate.score): the context steps continued under the scene's own conditions, scored from the first
 generated frame against the real continuation, next to the tokenized real clip (ceiling) and the last context frame
 held (floor).
-Writes gaia2_evaluation.json and gaia2_evaluation.md (the three tables) into the run dir.
+Cross-view consistency (every overlapping camera pair, every frame of model.steps latent steps generated from
+scratch; gaia_app/eval/cross_view.py): the seam error, the mean absolute difference between a camera and its
+neighbour warped onto it by the homography at infinity over their shared pixels, for the real frames (ceiling),
+the tokenized real clip, the model's cameras generated together, and each camera generated alone under the same
+conditions (a one-camera rig; the floor: nothing ties the views together). Intervals over scenes.
+Writes gaia2_evaluation.json and gaia2_evaluation.md (the four tables) into the run dir.
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +47,8 @@ from gaia_app.data.synthetic.generate import SyntheticSample
 from gaia_app.data.transforms import to_float
 from gaia_app.eval.agent_iou import agent_iou, train_agent_probe
 from gaia_app.eval.controllability import action_error, probe_clips, train_probes
+from gaia_app.eval.cross_view import overlapping_pairs, seam_errors
+from gaia_app.eval.intervals import mean_interval
 from gaia_app.eval.report import ARROWS
 from gaia_app.models.gaia2.conditioning import project_boxes
 from gaia_app.pipelines.gaia1_inputs import future_actions
@@ -186,8 +194,49 @@ def fidelity_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[
             "rows": {name: score(metrics, real_clips, video, first, networks, agents) for name, video in candidates.items()}}
 
 
+def one_camera(clip: LatentClip, camera: int) -> LatentClip:
+    """`clip` seen by camera `camera` alone (a one-camera rig with the same labels)."""
+    return replace(clip, mean=clip.mean[camera : camera + 1], logvar=clip.logvar[camera : camera + 1],
+                   cameras=[clip.cameras[camera]])
+
+
+def cross_view_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
+                     generator: torch.Generator) -> dict[str, Any]:
+    """Rows of the cross-view table (module docstring): seam error per scene, mean ± 95 % interval over scenes."""
+    steps = cfg.model.steps
+    frames = steps * pipeline.temporal
+    rows: dict[str, list[float]] = {"real frames (ceiling)": [], "tokenized real": [],
+                                    "model, cameras generated together": [],
+                                    "model, each camera generated alone (floor)": []}
+    pairs: list[tuple[int, int]] = []
+    for sample, clip in tqdm(scenes, desc="cross-view"):
+        latents, cond = pipeline.window(clip, 0, steps)
+        intrinsics, extrinsics = cond.intrinsics[0].cpu(), cond.extrinsics[0].cpu()
+        pairs = overlapping_pairs(intrinsics, extrinsics, *cond.image_size)
+        if not pairs:
+            raise ValueError(f"model=gaia2 mode=evaluate: the cameras {[c.name for c in clip.cameras]} of `data` do "
+                             "not overlap; cross-view consistency needs adjacent views (e.g. front, front_left)")
+        noise_seed = int(torch.randint(2**31, (), generator=generator))
+        together = pipeline.world.from_scratch(tuple(latents.shape), cond, torch.Generator(latents.device).manual_seed(noise_seed))
+        alone = []
+        for camera in range(len(clip.cameras)):
+            single, single_cond = pipeline.window(one_camera(clip, camera), 0, steps)
+            x = pipeline.world.from_scratch(tuple(single.shape), single_cond,
+                                            torch.Generator(single.device).manual_seed(noise_seed + 1 + camera))
+            alone.append(pipeline.decode(x)[0, 0].cpu())
+        videos = {"real frames (ceiling)": to_float(torch.from_numpy(sample.clip.frames[:, :frames])),
+                  "tokenized real": pipeline.decode(latents)[0].cpu(),
+                  "model, cameras generated together": pipeline.decode(together)[0].cpu(),
+                  "model, each camera generated alone (floor)": torch.stack(alone)}
+        for name, video in videos.items():
+            rows[name].append(float(seam_errors(video, intrinsics, extrinsics, pairs).mean()))
+    names = [c.name for c in scenes[0][1].cameras]
+    return {"scenes": len(scenes), "frames": frames, "pairs": [f"{names[a]}/{names[b]}" for a, b in pairs],
+            "rows": {name: mean_interval(values).as_dict() for name, values in rows.items()}}
+
+
 def markdown(results: dict[str, Any]) -> str:
-    """The three tables of a GAIA-2 evaluation."""
+    """The four tables of a GAIA-2 evaluation."""
     fidelity = results["fidelity"]
     names = list(next(iter(fidelity["rows"].values())))
     lines = [f"Fidelity ({fidelity['clips']} held-out clips (scene × camera), {fidelity['context_frames']} context + "
@@ -207,6 +256,12 @@ def markdown(results: dict[str, Any]) -> str:
               f"{actions['scored_frames']} generated frame pairs each)", "",
               "| frames | speed MAE (m/s) ↓ | curvature MAE (1/m) ↓ |", "|---|---:|---:|"]
     lines += [f"| {name} | {row['speed_mae']:.3f} | {row['curvature_mae']:.4f} |" for name, row in actions["rows"].items()]
+    views = results["cross_view"]
+    lines += ["", f"Cross-view consistency ({views['scenes']} held-out scenes × {views['frames']} frames, camera pairs "
+              f"{', '.join(views['pairs'])}; seam error: mean |camera − neighbour warped by the homography at infinity| "
+              "over the shared pixels, ± 95 % interval over scenes)", "",
+              "| frames | seam error ↓ |", "|---|---:|"]
+    lines += [f"| {name} | {row['mean']:.4f} ± {(row['high'] - row['low']) / 2:.4f} |" for name, row in views["rows"].items()]
     return "\n".join(lines) + "\n"
 
 
@@ -225,7 +280,8 @@ def gaia2_evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     results = {"cameras": [c.name for c in scenes[0][1].cameras], "probe_fit": fit,
                "fidelity": fidelity_table(cfg, pipeline, scenes, segmentation, generator),
                "agents": agent_table(cfg, pipeline, scenes, segmentation, generator),
-               "actions": action_table(cfg, pipeline, scenes, dynamics, generator)}
+               "actions": action_table(cfg, pipeline, scenes, dynamics, generator),
+               "cross_view": cross_view_table(cfg, pipeline, scenes, generator)}
     atomic_write_text(run_dir / "gaia2_evaluation.json", json.dumps(results, indent=2))
     table = markdown(results)
     atomic_write_text(run_dir / "gaia2_evaluation.md", table)
