@@ -27,7 +27,7 @@ from torch import nn
 from gaia_app.encoders import distillation_loss
 from gaia_app.eval.metrics import psnr, ssim
 from gaia_app.lit.adversarial import AdversarialModule
-from gaia_app.utils.checkpoint_io import read_checkpoint
+from gaia_app.lit.checkpoint import load_net_weights
 from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer, VideoTokenizerOutput, kl_bits_per_pixel
 
 STAGES = ("reconstruction", "gan")
@@ -241,14 +241,4 @@ def latent_mosaic(latents: torch.Tensor, columns: int = 8) -> torch.Tensor:
 
 def load_tokenizer_weights(net: VideoTokenizer, path: str | Path) -> None:
     """Copy the `net.*` weights of a VideoTokenizerModule checkpoint into `net` (strict: same architecture)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"model.init_from='{path}' does not exist: give a stage-1 tokenizer checkpoint")
-    state = read_checkpoint(path).get("state_dict", {})
-    weights = {k.removeprefix("net."): v for k, v in state.items() if k.startswith("net.")}
-    if not weights:
-        raise KeyError(f"model.init_from='{path}' holds no 'net.*' weights: is it a VideoTokenizerModule checkpoint?")
-    missing, unexpected = net.load_state_dict(weights, strict=False)
-    if missing or unexpected:
-        raise ValueError(f"model.init_from='{path}' does not fit model.net: missing {missing[:5]}, "
-                         f"unexpected {unexpected[:5]} (same preset as stage 1?)")
+    load_net_weights(net, path, "a stage-1 tokenizer checkpoint (a VideoTokenizerModule checkpoint)")

@@ -20,6 +20,7 @@ from torch import nn
 
 from gaia_app.diffusion.flow_matching import sample_tau, velocity_target
 from gaia_app.lit.base import GaiaModule
+from gaia_app.lit.checkpoint import load_net_weights
 from gaia_app.models.gaia2.conditioning import WorldConditions, batch_conditions, caption_vector  # noqa: F401
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
 from gaia_app.nn.distributions import DiagonalGaussian
@@ -37,18 +38,22 @@ class LatentWorldModelModule(GaiaModule):
         sample_posterior: draw latents from the posterior (True) or use its mean.
         latent_scale: latents are multiplied by it (about 1 / their standard deviation).
         val_taus: fixed τ values at which validation measures the loss (comparable across runs).
+        init_from: a latent world model checkpoint whose net weights start a fresh fit (fine-tuning, e.g. on a real
+            rig after synthetic pre-training: the net takes any number of cameras); None: random init.
     """
 
     def __init__(self, net: Callable[[], LatentWorldModel], optim: Callable, sched: Callable | None = None,
                  text_encoder: Callable[[], nn.Module] | None = None, tau_distribution: str = "logit_normal",
                  tau_mean: float = 0.0, tau_std: float = 1.0, context_prob: float = 0.5, sample_posterior: bool = True,
-                 latent_scale: float = 1.0, val_taus: tuple[float, ...] = (0.25, 0.5, 0.75)):
+                 latent_scale: float = 1.0, val_taus: tuple[float, ...] = (0.25, 0.5, 0.75),
+                 init_from: str | None = None):
         super().__init__(net, optim, sched)
         self.text_encoder_factory = text_encoder
         self.text_encoder: nn.Module | None = None
         self.tau_distribution, self.tau_mean, self.tau_std = tau_distribution, tau_mean, tau_std
         self.context_prob, self.sample_posterior, self.latent_scale = context_prob, sample_posterior, latent_scale
         self.val_taus = tuple(val_taus)
+        self.init_from = init_from
 
     @property
     def model(self) -> LatentWorldModel:
@@ -59,6 +64,11 @@ class LatentWorldModelModule(GaiaModule):
         super().configure_model()
         if self.text_encoder is None and self.text_encoder_factory is not None:
             self.text_encoder = self.text_encoder_factory()
+
+    def on_fit_start(self) -> None:
+        # a resumed run (ckpt_path) holds its own weights: init_from only starts a fresh one
+        if self.init_from and self.trainer.ckpt_path is None:
+            load_net_weights(self.model, self.init_from, "a latent world model checkpoint of the same preset")
 
     def latents(self, batch: dict[str, Any], sample: bool) -> torch.Tensor:
         """(b, v, t, C, h, w) scaled latents: a posterior sample or the mean."""

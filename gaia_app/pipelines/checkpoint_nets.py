@@ -34,9 +34,10 @@ COMPONENTS = {
 }
 
 
-def checkpoint_nets(path: str | Path, component: str, role: str,
+def checkpoint_nets(path: str | Path, component: str | tuple[str, ...], role: str,
                     device: str | torch.device = "cpu") -> tuple[dict[str, nn.Module], dict[str, Any]]:
-    """({net key: module in eval mode on `device`}, the checked model config) of a `component` checkpoint.
+    """({net key: module in eval mode on `device`}, the checked model config) of a `component` checkpoint (or of
+    any of several; `component_of(config)` says which).
 
     role: the setting that named the file (tokenizer_ckpt=…), for errors. A checkpoint of another component is a
     TypeError naming both; tensors that do not fit the stored config are a ValueError naming the file.
@@ -47,10 +48,13 @@ def checkpoint_nets(path: str | Path, component: str, role: str,
         raise KeyError(f"checkpoint '{path}' has no hyper_parameters.model_cfg; was it written by gaia_app's train.py?")
     where = f"checkpoint '{path}': hyper_parameters.model_cfg"
     check_targets(config, where, resolve=False)
-    module, prefixes = COMPONENTS[component]
-    if config.get("_target_") != module:
+    wanted = (component,) if isinstance(component, str) else tuple(component)
+    found = component_of(config)
+    if found not in wanted:
         held = str(config.get("_target_", "unknown")).rsplit(".", 1)[-1]
-        raise TypeError(f"{role}={path} holds a {held} checkpoint, expected a {module.rsplit('.', 1)[-1]}")
+        expected = " or ".join(COMPONENTS[c][0].rsplit(".", 1)[-1] for c in wanted)
+        raise TypeError(f"{role}={path} holds a {held} checkpoint, expected a {expected}")
+    _, prefixes = COMPONENTS[found]
     state = checkpoint["state_dict"]
     nets: dict[str, nn.Module] = {}
     for key, prefix in prefixes.items():
@@ -66,3 +70,8 @@ def checkpoint_nets(path: str | Path, component: str, role: str,
                              f"config ({error})") from None
         nets[key] = net.to(device).eval()
     return nets, config
+
+
+def component_of(config: dict[str, Any]) -> str | None:
+    """The component of COMPONENTS whose training module a checkpoint's model config names (None: none of them)."""
+    return next((name for name, (module, _) in COMPONENTS.items() if config.get("_target_") == module), None)

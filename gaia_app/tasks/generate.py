@@ -1,6 +1,7 @@
 """`generate(cfg)`: run trained checkpoints.
 
-mode=reconstruct writes mp4s, tokens, metrics and a .rrd; mode=tokenize writes a token cache for the world model;
+mode=reconstruct writes mp4s, tokens, metrics and a .rrd (a GAIA-2 video tokenizer checkpoint: mp4s and PSNR / SSIM
+per camera); mode=tokenize writes a token cache for the world model;
 mode=encode writes a GAIA-2 latent cache (multi-camera latents and their conditions) for the latent world model;
 the GAIA-1 rollout modes (video, action, text, text_action, text_only, unconditional) write futures
 (gaia_app/tasks/rollout.py); mode=controllability scores action / text adherence (tasks/controllability.py) and
@@ -36,7 +37,7 @@ from gaia_app.pipelines.gaia1_tokenizer import (ReconstructionOutput, TokenCache
                                                 camera_names, segment_names)
 from gaia_app.models.gaia1.tokenizer import ImageTokenizer
 from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer
-from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
+from gaia_app.pipelines.checkpoint_nets import checkpoint_nets, component_of
 from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
 from gaia_app.utils.shipped import load_nets, shipped_folder
 from gaia_app.tasks.controllability import controllability
@@ -91,6 +92,31 @@ def reconstruct(cfg: DictConfig, tokenizer: ImageTokenizer, run_dir: Path) -> di
         results[clip.clip_id] = {"psnr": float(out.psnr.mean()), "ssim": float(out.ssim.mean())}
     rec.flush()
     rec.disconnect()
+    return results
+
+
+def reconstruct_video(cfg: DictConfig, tokenizer: VideoTokenizer, run_dir: Path) -> dict[str, Any]:
+    """A GAIA-2 video tokenizer on `num_clips` validation clips: per clip and camera the PSNR and SSIM of the
+    reconstruction (posterior mean decoded, whole latent steps) and an mp4 (input | reconstruction)."""
+    from gaia_app.eval.metrics import psnr, ssim
+
+    datamodule = instantiate(cfg.data)
+    datamodule.setup("validate")
+    clips = datamodule.val_clips
+    pipeline = VideoTokenizerPipeline(tokenizer, datamodule.height, datamodule.width, datamodule.resize_mode, cfg.fps)
+    results: dict[str, Any] = {}
+    for i in tqdm(range(min(cfg.num_clips, len(clips))), desc="reconstruct"):
+        clip = clips[i]
+        with torch.no_grad():
+            out = pipeline.reconstruct(clip)
+        video, reconstruction = out.video.cpu(), out.reconstruction.cpu()  # (v, T, 3, H, W)
+        per_camera = {}
+        for v, camera in enumerate(camera_names(clip)):
+            write_video(inside(run_dir, f"{clip.clip_id}_{camera}.mp4"), side_by_side(video[v], reconstruction[v]),
+                        cfg.fps or clip.fps or 25.0)
+            per_camera[camera] = {"psnr": float(psnr(reconstruction[v], video[v]).mean()),
+                                  "ssim": float(ssim(reconstruction[v], video[v]).mean())}
+        results[clip.clip_id] = per_camera
     return results
 
 
@@ -167,9 +193,9 @@ def encode(cfg: DictConfig, tokenizer: VideoTokenizer, run_dir: Path) -> dict[st
     return cache_splits(cfg, "encode", writers, manifest)
 
 
-# mode → (the checkpoint component it runs, the run)
-MODES = {"reconstruct": ("tokenizer", reconstruct), "tokenize": ("tokenizer", tokenize),
-         "encode": ("video_tokenizer", encode)}
+# mode → {the checkpoint component it runs on: the run}
+MODES = {"reconstruct": {"tokenizer": reconstruct, "video_tokenizer": reconstruct_video},
+         "tokenize": {"tokenizer": tokenize}, "encode": {"video_tokenizer": encode}}
 
 
 def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
@@ -179,15 +205,15 @@ def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     if cfg.mode not in MODES:
         raise ValueError(f"mode={cfg.mode}: expected one of {sorted(MODES) + list(ROLLOUT_MODES) + ['controllability', 'evaluate', 'export', 'showcase']}")
     if cfg.mode in ("tokenize", "reconstruct") and cfg.get("weights"):
-        return MODES[cfg.mode][1](cfg, shipped_tokenizer(cfg), run_dir)
+        return MODES[cfg.mode]["tokenizer"](cfg, shipped_tokenizer(cfg), run_dir)
     if not cfg.ckpt:
         raise ValueError(f"mode={cfg.mode} needs ckpt=<checkpoint of a trained tokenizer>")
-    component, run = MODES[cfg.mode]
+    runs = MODES[cfg.mode]
     try:
-        nets, _ = checkpoint_nets(cfg.ckpt, component, "ckpt", cfg.device)
+        nets, config = checkpoint_nets(cfg.ckpt, tuple(runs), "ckpt", cfg.device)
     except TypeError as error:
         raise TypeError(f"mode={cfg.mode}: {error}") from None
-    return run(cfg, nets["net"], run_dir)
+    return runs[component_of(config)](cfg, nets["net"], run_dir)
 
 
 def shipped_tokenizer(cfg: DictConfig) -> ImageTokenizer:

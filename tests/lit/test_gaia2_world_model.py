@@ -115,3 +115,32 @@ def test_context_draws_cover_scratch_and_prediction() -> None:
     torch.manual_seed(0)
     k = module.draw_context(2000, 4, torch.device("cpu"))
     assert 0.4 < (k == 0).float().mean() < 0.6 and set(k.tolist()) == {0, 1, 2, 3}
+
+
+def test_init_from_starts_a_fresh_fit_from_another_runs_net(cache: Path, tmp_path: Path) -> None:
+    """model.init_from (fine-tuning): a fresh fit starts from the checkpoint's net weights, not its own init; a
+    checkpoint of another architecture is refused naming the setting."""
+    pretrained = make_module()
+    trainer = L.Trainer(max_steps=3, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)
+    trainer.fit(pretrained, datamodule(cache))
+    trainer.save_checkpoint(tmp_path / "pretrained.ckpt")
+    seen = {}
+
+    class Probe(L.Callback):
+        def on_train_batch_start(self, trainer, module, batch, batch_idx) -> None:
+            seen.setdefault("first", {k: v.detach().clone() for k, v in module.model.state_dict().items()})
+
+    tuned = make_module(init_from=str(tmp_path / "pretrained.ckpt"))
+    torch.manual_seed(1)  # a different own init: only init_from can make the weights equal
+    L.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
+              enable_model_summary=False, limit_val_batches=0, callbacks=[Probe()]).fit(tuned, datamodule(cache))
+    for name, value in pretrained.model.state_dict().items():
+        torch.testing.assert_close(seen["first"][name], value)
+    other = LatentWorldModelModule(net=functools.partial(LatentWorldModel, latent_channels=8, dim=32, depth=1, heads=4,
+                                                         metadata_fields=META),
+                                   optim=functools.partial(torch.optim.AdamW, lr=1e-3),
+                                   init_from=str(tmp_path / "pretrained.ckpt"))
+    with pytest.raises(ValueError, match="model.init_from=.*does not fit model.net"):
+        L.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                  enable_model_summary=False, limit_val_batches=0).fit(other, datamodule(cache))
