@@ -169,7 +169,8 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     results = run(checkpoints, tmp_path, "evaluate", "model.evaluate.contexts=2", "model.evaluate.probe_clips=2",
                   "model.evaluate.probe_steps=3")
     assert set(results["agents"]["rows"]) == {"real frames", "tokenized real", "model, agent conditions",
-                                              "model, selective CFG ×3", "model, agents dropped"}
+                                              "model, plain CFG ×3", "model, selective CFG ×3",
+                                              "model, selective CFG ×3, full second pass", "model, agents dropped"}
     assert set(results["actions"]["rows"]) == {"real frames, own actions", "tokenized real, own actions",
                                                "model, commanded actions", "model, actions dropped",
                                                "real continuation vs the command"}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from einops import rearrange
 
@@ -62,7 +63,9 @@ def test_spatially_selective_guidance_touches_only_agent_tokens_and_costs_less()
     noise = torch.randn(SHAPE)
     x = {}
     counts = {}
-    for name, guidance in {"none": Guidance(), "full": Guidance(scale=4.0), "spatial": Guidance(scale=4.0, spatial=True)}.items():
+    variants = {"none": Guidance(), "full": Guidance(scale=4.0), "spatial": Guidance(scale=4.0, spatial=True),
+                "masked": Guidance(scale=4.0, spatial=True, spatial_pass="full")}
+    for name, guidance in variants.items():
         pipe = pipeline(guidance)
         x[name] = pipe.velocity(noise, torch.full((1, 3), 0.5), cond)
         counts[name] = pipe.counter.tokens
@@ -73,3 +76,11 @@ def test_spatially_selective_guidance_touches_only_agent_tokens_and_costs_less()
     assert not torch.allclose(flat["spatial"][:, ~outside], flat["none"][:, ~outside])
     assert counts["none"] < counts["spatial"] < counts["full"] == 2 * counts["none"]
     assert counts["spatial"] == counts["none"] + 3 * selected.numel()
+    # the straightforward variant: plain CFG inside the agent regions, the conditional velocity outside them
+    assert torch.equal(flat["masked"][:, outside], flat["none"][:, outside])
+    torch.testing.assert_close(flat["masked"][:, ~outside], flat["full"][:, ~outside])
+    assert counts["masked"] == counts["full"]
+    # the report's saving changes the guided tokens: their unconditional pass lacks the rest of the scene
+    assert not torch.allclose(flat["spatial"][:, ~outside], flat["masked"][:, ~outside])
+    with pytest.raises(ValueError, match="spatial_pass"):
+        Guidance(scale=2.0, spatial=True, spatial_pass="half")

@@ -21,18 +21,29 @@ from gaia_app.models.gaia2.conditioning import WorldConditions, project_boxes
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
 
 
+SPATIAL_PASSES = ("agent_tokens", "full")
+
+
 @dataclass
 class Guidance:
     """Classifier-free guidance: v = v_u + scale·(v_c − v_u), v_u with `conditions` dropped.
 
     scale: 0 or 1 switches guidance off (one pass); the report uses 2–20 when it guides.
-    spatial: evaluate the second pass only on the token positions inside the projected agent boxes
-        (spatially selective CFG); tokens elsewhere keep the conditional velocity.
+    spatial: guide only the token positions inside the projected agent boxes (spatially selective CFG); tokens
+        elsewhere keep the conditional velocity.
+    spatial_pass: how the second pass of spatial guidance runs: "agent_tokens" (the report's saving: the network
+        sees only the agent tokens, so that pass loses the rest of the scene as context) or "full" (the
+        straightforward variant: a full unconditional pass, whose velocity is used inside the agent regions only).
     """
 
     scale: float = 0.0
     conditions: Sequence[str] = ("agents",)
     spatial: bool = False
+    spatial_pass: str = "agent_tokens"
+
+    def __post_init__(self) -> None:
+        if self.spatial_pass not in SPATIAL_PASSES:
+            raise ValueError(f"guidance.spatial_pass={self.spatial_pass!r}: expected one of {SPATIAL_PASSES}")
 
     @property
     def active(self) -> bool:
@@ -104,8 +115,13 @@ class LatentWorldModelPipeline:
         selected = agent_token_positions(cond, (h, w), p).to(x.device)
         if selected.numel() == 0:
             return conditional
-        unconditional = self.model(x, taus, unconditional_cond, positions=selected)  # (b, t, k, C·p²)
-        self.counter.add(b, t, selected.numel())
+        if g.spatial_pass == "full":
+            scene = self.model(x, taus, unconditional_cond)
+            self.counter.add(b, t, positions)
+            unconditional = rearrange(scene, "b v t c (h p) (w q) -> b t (v h w) (p q c)", p=p, q=p)[:, :, selected]
+        else:
+            unconditional = self.model(x, taus, unconditional_cond, positions=selected)  # (b, t, k, C·p²)
+            self.counter.add(b, t, selected.numel())
         tokens = rearrange(conditional, "b v t c (h p) (w q) -> b t (v h w) (p q c)", p=p, q=p)
         picked = tokens[:, :, selected]
         tokens = tokens.clone()

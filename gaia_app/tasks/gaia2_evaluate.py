@@ -10,7 +10,11 @@ conditioning boxes projected into each camera, for
     real frames                 the rendered scene (what the probe reaches on real images)
     tokenized real              the scene's latents decoded (the ceiling through this tokenizer)
     model, agent conditions     generated with every condition
-    model, selective CFG ×s     the same with spatially selective guidance on the agents (s = cfg_scale; skipped at 0)
+    model, plain CFG ×s         the same with classifier-free guidance on the agents over the whole scene
+                                (s = cfg_scale; the three guided rows are skipped at 0)
+    model, selective CFG ×s     spatially selective guidance: only the tokens inside the agent boxes are guided, and
+                                the second pass sees those tokens alone (the report's saving)
+    ..., full second pass       the same regions guided from a full unconditional pass (the straightforward variant)
     model, agents dropped       generated with the agent condition dropped (the floor)
 Action adherence (front camera, GAIA-1's inverse-dynamics probe): model.context_steps clean steps, then
 model.steps − context_steps steps generated under each of `commands` (speed, curvature presets); the mean absolute
@@ -109,9 +113,13 @@ def agent_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Syn
     """Rows of the agent-control table (module docstring)."""
     e, steps = cfg.model.evaluate, cfg.model.steps
     frames = steps * pipeline.temporal
+    s = f"{e.cfg_scale:g}"
+    guided = {f"model, plain CFG ×{s}": Guidance(e.cfg_scale, ("agents",)),
+              f"model, selective CFG ×{s}": Guidance(e.cfg_scale, ("agents",), True),
+              f"model, selective CFG ×{s}, full second pass": Guidance(e.cfg_scale, ("agents",), True, "full")}
     rows: dict[str, list[torch.Tensor]] = {"real frames": [], "tokenized real": [], "model, agent conditions": []}
     if e.cfg_scale:
-        rows[f"model, selective CFG ×{e.cfg_scale:g}"] = []
+        rows.update({name: [] for name in guided})
     rows["model, agents dropped"] = []
     truth, boxes = [], []
     world, plain = pipeline.world, pipeline.world.guidance
@@ -123,9 +131,9 @@ def agent_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Syn
         rows["tokenized real"].append(pipeline.decode(real)[0].cpu())
         shape = tuple(real.shape)
         noise_seed = int(torch.randint(2**31, (), generator=generator))
-        for name, guidance, drop in (("model, agent conditions", plain, ()),
-                                     (f"model, selective CFG ×{e.cfg_scale:g}", Guidance(e.cfg_scale, ("agents",), True), ()),
-                                     ("model, agents dropped", plain, ("agents",))):
+        runs = [("model, agent conditions", plain, ()), *((name, g, ()) for name, g in guided.items()),
+                ("model, agents dropped", plain, ("agents",))]
+        for name, guidance, drop in runs:
             if name not in rows:
                 continue
             world.guidance = guidance
