@@ -46,3 +46,12 @@ def test_import_direction(path: Path) -> None:
 def test_every_subpackage_is_checked() -> None:
     found = {p.name for p in PACKAGE.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
     assert found <= set(LAYER), f"new subpackages need a layer in this test: {found - set(LAYER)}"
+
+
+
+def test_samplers_depend_on_protocols_not_on_models() -> None:
+    """diffusion/ holds samplers and schedules: it sees a model through the few methods it calls (the protocols in
+    ar_sampling.py and video_sampling.py), never by importing gaia_app.models, so a new model plugs in unchanged."""
+    for path in sorted((PACKAGE / "diffusion").glob("*.py")):
+        bad = [name for name in imports_of(path) if name.startswith("gaia_app.models")]
+        assert not bad, f"{path.name} imports {bad}"

@@ -11,14 +11,41 @@ re-runs the whole window. Beyond T steps a sliding window keeps the last T - 1 f
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import torch
 from tqdm.auto import tqdm
 
 from gaia_app.diffusion.guidance import ClassifierFreeGuidance
-from gaia_app.models.gaia1.world_model import Conditions, WorldModel
 from gaia_app.nn.attention import KVCache
+
+
+class StepConditions(Protocol):
+    """Condition tokens per step (text (b, t, m, d), actions (b, t, l, d)), e.g. gaia_app.models.gaia1's Conditions."""
+
+    text: torch.Tensor
+    actions: torch.Tensor
+
+    def steps(self, start: int, stop: int) -> StepConditions: ...
+
+    def cat(self, other: StepConditions) -> StepConditions: ...
+
+
+class TokenWorldModel(Protocol):
+    """What the sampler needs of an autoregressive world model (gaia_app.models.gaia1.WorldModel has it): `frames`
+    steps per context window, `m` text positions per step, embedding of tokens and conditions, the causal trunk
+    (optionally KV-cached) and the token head. The sampler depends on this, not on a concrete model (DESIGN.md §3)."""
+
+    frames: int
+    m: int
+    head: Callable[[torch.Tensor], torch.Tensor]
+
+    def embed(self, tokens: torch.Tensor, cond: StepConditions, start: int = 0, previous: torch.Tensor | None = None,
+              previous_actions: torch.Tensor | None = None) -> torch.Tensor: ...
+
+    def decode(self, x: torch.Tensor, cache: KVCache | None = None) -> torch.Tensor: ...
 
 MODES = ("argmax", "sample", "top_k", "top_p")
 
@@ -70,7 +97,7 @@ def nucleus_sample(logits: torch.Tensor, p: float, generator: torch.Generator | 
 class WindowStream:
     """Positions fed so far in one context window: a KV cache, or the embedded chunks re-run in full."""
 
-    def __init__(self, net: WorldModel, use_cache: bool):
+    def __init__(self, net: TokenWorldModel, use_cache: bool):
         self.net = net
         self.cache = KVCache() if use_cache else None
         self.chunks: list[torch.Tensor] = []
@@ -100,7 +127,8 @@ class AutoregressiveSampler:
         self.progress = progress
 
     @torch.no_grad()
-    def __call__(self, net: WorldModel, context: torch.Tensor, cond: Conditions, uncond: Conditions | None = None,
+    def __call__(self, net: TokenWorldModel, context: torch.Tensor, cond: StepConditions,
+                 uncond: StepConditions | None = None,
                  frames: int = 1, guidance: ClassifierFreeGuidance | None = None,
                  generator: torch.Generator | None = None) -> torch.Tensor:
         """Context (b, t0, n) int64 and conditions for t0 + f steps → tokens (b, t0 + f, n).
@@ -136,7 +164,7 @@ class AutoregressiveSampler:
         return tokens
 
     @staticmethod
-    def step(net: WorldModel, tokens: torch.Tensor, streams: Conditions, t: int, start: int) -> torch.Tensor:
+    def step(net: TokenWorldModel, tokens: torch.Tensor, streams: StepConditions, t: int, start: int) -> torch.Tensor:
         """Embedded positions (B, s, d) of step t in the window beginning at step `start`."""
         copies = streams.text.shape[0] // tokens.shape[0]  # one copy per stream
         both = tokens[:, t : t + 1].repeat(copies, 1, 1)
@@ -145,7 +173,7 @@ class AutoregressiveSampler:
         return net.embed(both, streams.steps(t, t + 1), t - start, previous, previous_actions)
 
     @staticmethod
-    def prefill(net: WorldModel, tokens: torch.Tensor, streams: Conditions, start: int, t: int) -> torch.Tensor:
+    def prefill(net: TokenWorldModel, tokens: torch.Tensor, streams: StepConditions, start: int, t: int) -> torch.Tensor:
         """The window's known steps start..t-1 in full, then step t's text: (B, (t - start)·s + m, d)."""
         both = tokens[:, start:t].repeat(streams.text.shape[0] // tokens.shape[0], 1, 1)
         known = net.embed(both, streams.steps(start, t), 0)

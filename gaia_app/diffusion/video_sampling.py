@@ -8,16 +8,38 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Callable
+from typing import Protocol
 
 import torch
 
 from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule, v_from_x0, x0_from_v
 from gaia_app.diffusion.samplers import Denoiser, ImageVideoBlend, standard_normal
-from gaia_app.models.gaia1.video_decoder import VideoDecoder
+
+
+class FrameCodec(Protocol):
+    """How a decoder maps frames (b, t, 3, H, W) to what it diffuses and back (gaia_app.models.gaia1's ResidualFrame)."""
+
+    def encode(self, frames: torch.Tensor) -> torch.Tensor: ...
+
+    def decode(self, x: torch.Tensor) -> torch.Tensor: ...
+
+    def clip(self, x: torch.Tensor) -> torch.Tensor: ...
+
+
+class WindowDenoiser(Protocol):
+    """What window sampling needs of a video decoder (gaia_app.models.gaia1.VideoDecoder has it): its v-prediction for
+    a noised window and the frame codec of its diffused space. The sampler depends on this, not on a concrete model
+    (DESIGN.md §3)."""
+
+    def __call__(self, x_t: torch.Tensor, time: torch.Tensor, tokens: torch.Tensor, token_mask: torch.Tensor,
+                 context: torch.Tensor, context_mask: torch.Tensor, temporal: bool = True,
+                 rendered: torch.Tensor | None = None) -> torch.Tensor: ...
+
+    def residual_frame(self, rendered: torch.Tensor | None, token_mask: torch.Tensor, like: torch.Tensor) -> FrameCodec: ...
 
 
 @torch.no_grad()
-def sample_window(net: VideoDecoder, schedule: CosineNoiseSchedule, sampler: Callable, tokens: torch.Tensor,
+def sample_window(net: WindowDenoiser, schedule: CosineNoiseSchedule, sampler: Callable, tokens: torch.Tensor,
                   token_mask: torch.Tensor, context: torch.Tensor, context_mask: torch.Tensor,
                   blend: ImageVideoBlend | None = None, generator: torch.Generator | None = None,
                   callback: Callable | None = None, rendered: torch.Tensor | None = None) -> torch.Tensor:
