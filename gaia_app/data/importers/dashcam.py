@@ -2,9 +2,13 @@
 
     python -m gaia_app.data.importers.dashcam drive.mp4 --out data/clips --clip-seconds 10 --height 288 --width 512
 
-The clips carry timestamps only: no actions, text, agents or camera calibration, because the
-video has none (absent labels are never invented). Timestamps are frame index / container fps,
-so a variable-frame-rate source is treated as constant-rate at its average rate.
+The clips carry timestamps, and with a logger's telemetry (`--telemetry log.csv`, joined by time,
+gaia_app/data/importers/telemetry.py) ego speed and curvature per frame; no text, agents or camera
+calibration, because the video has none (absent labels are never invented). Timestamps are frame
+index / container fps, so a variable-frame-rate source is treated as constant-rate at its average rate.
+
+    python -m gaia_app.data.importers.dashcam drive.mp4 --out data/clips --clip-seconds 10 \
+        --telemetry drive_log.csv --telemetry-offset 12.4
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from tqdm import tqdm
 
 from gaia_app.data.clip import ClipError
 from gaia_app.data.clip_writer import ClipFolderWriter, label_rows, meta_json
+from gaia_app.data.importers.telemetry import actions_at, read_telemetry
 from gaia_app.data.names import check_camera_name, check_clip_id
 from gaia_app.data.transforms import ResizePlan, plan_resize, resample_indices, resize_image
 from gaia_app.data.video_io import count_intact_packets, iter_frames, video_info
@@ -72,6 +77,11 @@ def import_dashcam(
     clip_id: str | None = None,
     overwrite: bool = False,
     progress: bool = True,
+    telemetry: str | Path | None = None,
+    telemetry_offset: float = 0.0,
+    max_gap: float = 0.5,
+    wheelbase: float | None = None,
+    steering_ratio: float = 1.0,
 ) -> list[Path]:
     """Cut a dashcam video into clip folders under `out_root`; returns their paths in time order.
 
@@ -80,6 +90,9 @@ def import_dashcam(
     timestamps (None: every frame). height, width: output size in pixels (both or neither),
     with `resize_mode` "crop" (aspect kept) or "stretch". clip_id: base name (default: the file
     stem; split clips get `_0000`, `_0001`, ...). The video is decoded once, streaming.
+    telemetry: a CSV / JSONL log whose time minus `telemetry_offset` (s) is the video's time; every kept frame gets
+    its speed and curvature, interpolated (telemetry.py; `max_gap` s between samples at most, `wheelbase` and
+    `steering_ratio` for a steering-angle log). It is checked against every frame before any clip is written.
     """
     check_camera_name(camera, "--camera")
     video = Path(video_path)
@@ -97,11 +110,17 @@ def import_dashcam(
         log.info("%s: dropping the last %d frames, shorter than a %g s clip", video, dropped, clip_len_s)
     plan = _resize_plan(info.width, info.height, height, width, resize_mode)
     chunks = keep[: n_clips * per_clip].reshape(n_clips, per_clip)
+    actions = None
+    if telemetry is not None:
+        log_ = read_telemetry(telemetry, telemetry_offset)
+        actions = actions_at(log_, source_t[chunks.reshape(-1)], max_gap, wheelbase, steering_ratio)
+        actions = actions.reshape(n_clips, per_clip, 2)
     with tqdm(total=chunks.size, unit="frame", desc=video.name, disable=not progress) as bar:
         frames = _selected_frames(video, chunks.reshape(-1), plan, bar)
         paths = []
-        for cid, chunk in zip(_clip_ids(video.stem, clip_id, n_clips), chunks):
-            path = _write_one(out_root, cid, islice(frames, per_clip), source_t[chunk], rate, camera, video, overwrite)
+        for k, (cid, chunk) in enumerate(zip(_clip_ids(video.stem, clip_id, n_clips), chunks)):
+            path = _write_one(out_root, cid, islice(frames, per_clip), source_t[chunk], rate, camera, video, overwrite,
+                              None if actions is None else actions[k])
             if path is None:
                 break
             paths.append(path)
@@ -122,7 +141,7 @@ class _Counted:
 
 
 def _write_one(out_root, clip_id: str, frames: Iterator[np.ndarray], timestamps: np.ndarray, rate: float,
-               camera: str, video: Path, overwrite: bool) -> Path | None:
+               camera: str, video: Path, overwrite: bool, actions: np.ndarray | None = None) -> Path | None:
     """Write one clip; None (and nothing written) when the source ends before the clip is full."""
     with ClipFolderWriter(out_root, clip_id, overwrite=overwrite) as writer:
         counted = _Counted(frames)
@@ -136,7 +155,7 @@ def _write_one(out_root, clip_id: str, frames: Iterator[np.ndarray], timestamps:
             log.warning("%s: decoding stopped early (truncated file?); clip '%s' not written", video, clip_id)
             writer.abort()
             return None
-        writer.write_labels(label_rows(timestamps))
+        writer.write_labels(label_rows(timestamps, actions))
         metadata = {"source_video": video.name, "source_start_s": float(timestamps[0])}
         writer.write_meta(meta_json(rate, None, [camera], metadata))
     return writer.target
@@ -154,10 +173,20 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--camera", default="front", help="view name, the mp4's file name")
     parser.add_argument("--clip-id", help="clip folder name (default: the video's file stem)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing clip folders")
+    parser.add_argument("--telemetry", help="CSV / JSONL log with t (s) and speed or lat/lon, curvature or yaw_rate or "
+                                            "steering_angle: per-frame speed and curvature joined by time")
+    parser.add_argument("--telemetry-offset", type=float, default=0.0,
+                        help="the log's time at the video's first frame (s): video time = t - offset")
+    parser.add_argument("--max-gap", type=float, default=0.5, help="longest gap between log samples around a frame (s)")
+    parser.add_argument("--wheelbase", type=float, help="metres, for a steering_angle log")
+    parser.add_argument("--steering-ratio", type=float, default=1.0,
+                        help="steering-wheel to road-wheel angle ratio, for a steering_angle log")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     paths = import_dashcam(args.video, args.out, args.clip_seconds, args.camera, args.fps, args.height, args.width,
-                           args.resize_mode, args.clip_id, args.overwrite)
+                           args.resize_mode, args.clip_id, args.overwrite, telemetry=args.telemetry,
+                           telemetry_offset=args.telemetry_offset, max_gap=args.max_gap, wheelbase=args.wheelbase,
+                           steering_ratio=args.steering_ratio)
     print("\n".join(str(p) for p in paths))
 
 
