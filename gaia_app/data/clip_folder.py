@@ -387,6 +387,12 @@ class ClipFolderDataset(torch.utils.data.Dataset):
     def __getitem__(self, index: int) -> Clip:
         return read_clip(self.root / self.clip_ids[index], self.cameras)
 
+    def describe(self, index: int) -> dict[str, Any]:
+        """Clip-level metadata of clip `index` (meta.json "metadata", e.g. source_video, run_id, gps_start), read
+        without decoding any video: for splits by run or place."""
+        meta = json.loads((self.root / self.clip_ids[index] / META_FILE).read_text())
+        return dict(meta.get("metadata") or {})
+
     def steps_at(self, index: int, fps: float | None) -> int:
         """Frames of clip `index` after resampling to `fps` (None: its own rate), from its labels alone."""
         timestamps = self.timestamps[index]

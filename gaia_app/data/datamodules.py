@@ -37,6 +37,66 @@ def split_by_clip(source: ClipSource, val_fraction: float, seed: int) -> tuple[S
     return Subset(source, sorted(order[n_val:].tolist())), Subset(source, sorted(order[:n_val].tolist()))
 
 
+# clip metadata that names the drive a clip was cut from, in order of preference (dashcam: source_video;
+# PandaSet: sequence); a clip with none of them is a run of its own
+RUN_KEYS = ("run_id", "source_video", "sequence")
+SPLITS = ("run", "clip")
+
+
+def clip_metadata(source: ClipSource) -> list[dict[str, Any]]:
+    """Clip-level metadata of every clip, from a cheap `describe(i)` when the source has one."""
+    describe = getattr(source, "describe", None)
+    return [describe(i) if describe else dict(source[i].meta) for i in range(len(source))]
+
+
+def clip_runs(metas: list[dict[str, Any]], run_keys: Sequence[str]) -> list[str]:
+    """The run (drive) of each clip: its first `run_keys` value, else the clip alone (counted in the log)."""
+    runs, alone = [], 0
+    for i, meta in enumerate(metas):
+        key = next((f"{k}={meta[k]}" for k in run_keys if meta.get(k) not in (None, "")), None)
+        alone += key is None
+        runs.append(key or f"clip#{i}")
+    if alone:
+        log.info("split by run: %d of %d clips name no run (%s); each is a run of its own", alone, len(metas),
+                 ", ".join(run_keys))
+    return runs
+
+
+def in_region(meta: dict[str, Any], region: Sequence[float], gps_key: str, index: int) -> bool:
+    """Whether a clip's `gps_key` [lat, lon] lies in region [lat_min, lat_max, lon_min, lon_max]."""
+    position = meta.get(gps_key)
+    if position is None or len(position) != 2:
+        raise ValueError(f"data.val_region: clip {index} has no metadata '{gps_key}' [lat, lon] (the dashcam importer "
+                         "writes it from a log with lat/lon); a geofenced split needs it on every clip")
+    lat_min, lat_max, lon_min, lon_max = region
+    return lat_min <= position[0] <= lat_max and lon_min <= position[1] <= lon_max
+
+
+def split_by_run(source: ClipSource, val_fraction: float, seed: int, run_keys: Sequence[str] = RUN_KEYS,
+                 val_region: Sequence[float] | None = None, gps_key: str = "gps_start") -> tuple[Subset, Subset]:
+    """Split whole runs (GAIA-1 §3: validation drives and geofenced regions are held out), never segments of one:
+    every clip of a run lands on the same side. Without `val_region` a random `val_fraction` of the runs is
+    validation; with it ([lat_min, lat_max, lon_min, lon_max]), every run with a clip starting inside the box."""
+    metas = clip_metadata(source)
+    runs = clip_runs(metas, run_keys)
+    names = sorted(set(runs))
+    if val_region is not None:
+        if len(val_region) != 4:
+            raise ValueError(f"data.val_region={list(val_region)}: expected [lat_min, lat_max, lon_min, lon_max]")
+        held = {runs[i] for i, meta in enumerate(metas) if in_region(meta, val_region, gps_key, i)}
+        if not held or len(held) == len(names):
+            raise ValueError(f"data.val_region={list(val_region)} holds {len(held)} of {len(names)} runs: both sides "
+                             "need at least one")
+    else:
+        if len(names) < 2:
+            raise ValueError(f"split by run: the {len(metas)} clips come from {len(names)} run; give at least two "
+                             "drives, data.val_source, or data.split_by=clip")
+        order = np.random.default_rng(seed).permutation(len(names))
+        held = {names[j] for j in order[: min(len(names) - 1, max(1, int(round(val_fraction * len(names)))))]}
+    train = [i for i, run in enumerate(runs) if run not in held]
+    return Subset(source, train), Subset(source, [i for i, run in enumerate(runs) if run in held])
+
+
 def source_features(source: ClipSource, names: Sequence[str]) -> dict[str, list]:
     """Balancing features of every clip; uses a cheap `describe(i)` when the source has one."""
     describe = getattr(source, "describe", None)
@@ -50,7 +110,9 @@ class ClipSourceDataModule(L.LightningDataModule, ABC):
     Args:
         source: clip source for training (and validation when val_source is None).
         val_source: separate validation source (e.g. the synthetic world with another seed).
-        val_fraction, split_seed: clip-level split of `source` when val_source is None.
+        val_fraction, split_seed: the split of `source` when val_source is None.
+        split_by: "clip" (random clips) or "run" (whole drives, `split_by_run`: run_keys name the drive in the
+            clips' metadata; val_region [lat_min, lat_max, lon_min, lon_max] geofences validation by `gps_start`).
         batch_size, num_workers: loader settings.
         height, width: model resolution (paper 288×512); resize_mode 'crop' keeps the aspect.
         balance: None, or {"features": {name: bins}, "exponent": float} (GAIA-1 §3).
@@ -58,8 +120,14 @@ class ClipSourceDataModule(L.LightningDataModule, ABC):
 
     def __init__(self, source: ClipSource, val_source: ClipSource | None = None, val_fraction: float = 0.1,
                  split_seed: int = 0, batch_size: int = 8, num_workers: int = 0, height: int = 64, width: int = 112,
-                 resize_mode: str = "crop", balance: dict[str, Any] | None = None):
+                 resize_mode: str = "crop", balance: dict[str, Any] | None = None, split_by: str = "clip",
+                 run_keys: Sequence[str] = RUN_KEYS, val_region: Sequence[float] | None = None):
         super().__init__()
+        if split_by not in SPLITS:
+            raise ValueError(f"data.split_by={split_by!r}: expected one of {SPLITS}")
+        if val_region is not None and split_by != "run":
+            raise ValueError("data.val_region geofences whole runs: set data.split_by=run")
+        self.split_by, self.run_keys, self.val_region = split_by, tuple(run_keys), val_region
         self.source, self.val_source = source, val_source
         self.val_fraction, self.split_seed = val_fraction, split_seed
         self.batch_size = check_count(batch_size, "data.batch_size")
@@ -80,8 +148,12 @@ class ClipSourceDataModule(L.LightningDataModule, ABC):
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:
             return
-        train, val = (self.source, self.val_source) if self.val_source is not None else split_by_clip(
-            self.source, self.val_fraction, self.split_seed)
+        if self.val_source is not None:
+            train, val = self.source, self.val_source
+        elif self.split_by == "run":
+            train, val = split_by_run(self.source, self.val_fraction, self.split_seed, self.run_keys, self.val_region)
+        else:
+            train, val = split_by_clip(self.source, self.val_fraction, self.split_seed)
         self.train_clips, self.val_clips = train, val
         self.train_set, self.val_set = self.wrap(train, True), self.wrap(val, False)
 

@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from gaia_app.data.clip import ClipError
 from gaia_app.data.clip_writer import ClipFolderWriter, label_rows, meta_json
-from gaia_app.data.importers.telemetry import actions_at, read_telemetry
+from gaia_app.data.importers.telemetry import actions_at, position_at, read_telemetry
 from gaia_app.data.names import check_camera_name, check_clip_id
 from gaia_app.data.transforms import ResizePlan, plan_resize, resample_indices, resize_image
 from gaia_app.data.video_io import count_intact_packets, iter_frames, video_info
@@ -110,7 +110,7 @@ def import_dashcam(
         log.info("%s: dropping the last %d frames, shorter than a %g s clip", video, dropped, clip_len_s)
     plan = _resize_plan(info.width, info.height, height, width, resize_mode)
     chunks = keep[: n_clips * per_clip].reshape(n_clips, per_clip)
-    actions = None
+    actions, log_ = None, None
     if telemetry is not None:
         log_ = read_telemetry(telemetry, telemetry_offset)
         actions = actions_at(log_, source_t[chunks.reshape(-1)], max_gap, wheelbase, steering_ratio)
@@ -119,8 +119,9 @@ def import_dashcam(
         frames = _selected_frames(video, chunks.reshape(-1), plan, bar)
         paths = []
         for k, (cid, chunk) in enumerate(zip(_clip_ids(video.stem, clip_id, n_clips), chunks)):
+            start = None if log_ is None else position_at(log_, float(source_t[chunk[0]]))
             path = _write_one(out_root, cid, islice(frames, per_clip), source_t[chunk], rate, camera, video, overwrite,
-                              None if actions is None else actions[k])
+                              None if actions is None else actions[k], start)
             if path is None:
                 break
             paths.append(path)
@@ -141,7 +142,8 @@ class _Counted:
 
 
 def _write_one(out_root, clip_id: str, frames: Iterator[np.ndarray], timestamps: np.ndarray, rate: float,
-               camera: str, video: Path, overwrite: bool, actions: np.ndarray | None = None) -> Path | None:
+               camera: str, video: Path, overwrite: bool, actions: np.ndarray | None = None,
+               gps_start: list[float] | None = None) -> Path | None:
     """Write one clip; None (and nothing written) when the source ends before the clip is full."""
     with ClipFolderWriter(out_root, clip_id, overwrite=overwrite) as writer:
         counted = _Counted(frames)
@@ -157,6 +159,8 @@ def _write_one(out_root, clip_id: str, frames: Iterator[np.ndarray], timestamps:
             return None
         writer.write_labels(label_rows(timestamps, actions))
         metadata = {"source_video": video.name, "source_start_s": float(timestamps[0])}
+        if gps_start is not None:  # where the clip starts: geofenced validation splits (data.val_region)
+            metadata["gps_start"] = gps_start
         writer.write_meta(meta_json(rate, None, [camera], metadata))
     return writer.target
 

@@ -211,8 +211,11 @@ def import_pandaset(
         log.info("%s: dropped %d boxes of categories outside %s: %s", seq, sum(dropped.values()), AGENT_CATEGORIES,
                  ", ".join(f"{k} {v}" for k, v in dropped.most_common()))
     fps = float(1.0 / np.median(np.diff(frame_times)))
+    first_fix = _load(seq / "meta" / "gps.json")[0]
     metadata = {"dataset": "pandaset", "sequence": seq.name, "country": "US",  # PandaSet is recorded in California
-                "start_time_unix_s": float(frame_times[0]), "dropped_agents": dict(dropped)}
+                "start_time_unix_s": float(frame_times[0]), "dropped_agents": dict(dropped),
+                # [lat, lon] of the first frame: geofenced validation splits (data.val_region)
+                "gps_start": [float(first_fix["lat"]), float(first_fix["long"])]}
     default_id = seq.name if seq.name.startswith("pandaset") else f"pandaset_{seq.name}"
     with ClipFolderWriter(out_root, clip_id or default_id, overwrite=overwrite) as writer:
         if height is None:

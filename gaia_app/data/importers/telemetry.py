@@ -143,3 +143,10 @@ def actions_at(log: Telemetry, frame_times: np.ndarray, max_gap_s: float = 0.5, 
         row = int(near[~np.all(np.isfinite(actions[near]), axis=1)][0])
         raise ClipError(f"{log.path}: record {row + 1} gives a non-finite speed or curvature {actions[row].tolist()}")
     return np.stack([np.interp(frame_times, log.t, actions[:, k]) for k in range(2)], axis=1).astype(np.float32)
+
+
+def position_at(log: Telemetry, time_s: float) -> list[float] | None:
+    """[lat, lon] at `time_s` on the video clock (interpolated), or None when the log has no GPS."""
+    if not {"lat", "lon"} <= log.columns.keys():
+        return None
+    return [float(np.interp(time_s, log.t, log.columns[name])) for name in ("lat", "lon")]
