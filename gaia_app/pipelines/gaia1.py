@@ -204,15 +204,16 @@ class Gaia1Pipeline:
     @torch.no_grad()
     def sample_batch(self, context: torch.Tensor, frames: int, text: torch.Tensor | None = None,
                      actions: torch.Tensor | None = None, negative: torch.Tensor | None = None, num_futures: int = 1,
-                     generator: torch.Generator | None = None) -> tuple[torch.Tensor, Conditions]:
-        """b contexts at once: tokens (b, t0, h, w); text, negative (b, t, m, e) encoded; actions (b, t, 2)
-        → tokens (b·k, t, h, w), each context's futures adjacent, and their conditions."""
-        steps = context.shape[1] + frames
+                     generator: torch.Generator | None = None, lead: int = 0) -> tuple[torch.Tensor, Conditions]:
+        """b contexts at once: tokens (b, t0, h, w); text, negative (b, lead + t, m, e) encoded; actions
+        (b, lead + t, 2) → tokens (b·k, t, h, w), each context's futures adjacent, and their conditions (t steps).
+        lead: steps of the streams before the context that only inform the conditions (WorldModelRolloutPipeline)."""
+        steps = lead + context.shape[1] + frames
         actions = None if actions is None else actions.float().to(self.device)
         flat = rearrange(context, "b t h w -> b t (h w)").to(self.device)
-        out = self.rollouts(flat, frames, text, actions, negative, num_futures, generator)
+        out = self.rollouts(flat, frames, text, actions, negative, num_futures, generator, lead)
         cond = self.rollouts.conditions(out.tokens.shape[0], steps, *(
-            None if x is None else x.repeat_interleave(num_futures, 0) for x in (text, actions)))
+            None if x is None else x.repeat_interleave(num_futures, 0) for x in (text, actions))).steps(lead, steps)
         h, w = self.token_grid
         return rearrange(out.tokens, "k t (h w) -> k t h w", h=h, w=w), cond
 

@@ -47,12 +47,15 @@ class WorldModelRolloutPipeline:
     @torch.no_grad()
     def __call__(self, context: torch.Tensor, frames: int, text: torch.Tensor | None = None,
                  actions: torch.Tensor | None = None, negative_text: torch.Tensor | None = None,
-                 num_futures: int = 1, generator: torch.Generator | None = None) -> RolloutOutput:
-        """context (b, t0, n) int64; text, negative_text: (b, t0 + f, m, e) encoder outputs; actions: (b, t0 + f, 2).
+                 num_futures: int = 1, generator: torch.Generator | None = None, lead: int = 0) -> RolloutOutput:
+        """context (b, t0, n) int64; text, negative_text: (b, lead + t0 + f, m, e) encoder outputs; actions:
+        (b, lead + t0 + f, 2).
 
-        Several futures per example are sampled in one batch (`num_futures`).
+        Several futures per example are sampled in one batch (`num_futures`). The first `lead` steps of the streams
+        precede the context and only inform the conditions (with action deltas, the change of the context's first
+        action): a window cut from a longer rollout is then conditioned exactly as in that rollout.
         """
-        steps = context.shape[1] + frames
+        steps = lead + context.shape[1] + frames
         context, text, actions, negative_text = (repeat_futures(x, num_futures) for x in (context, text, actions, negative_text))
         batch = context.shape[0]
         cond = self.conditions(batch, steps, text, actions)
@@ -61,6 +64,8 @@ class WorldModelRolloutPipeline:
             uncond = self.conditions(batch, steps, negative_text, actions)
         elif self.guidance is not None:
             uncond = self.conditions(batch, steps, text, actions, drop=self.guided_streams)
+        if lead:
+            cond, uncond = cond.steps(lead, steps), None if uncond is None else uncond.steps(lead, steps)
         guidance = None if self.guidance is None else self.guidance.for_rollout(prompted=text is not None)
         tokens = self.sampler(self.net, context, cond, uncond, frames, guidance, generator)
         return RolloutOutput(tokens, context.shape[1])

@@ -1,0 +1,186 @@
+"""A closed-loop neural driving simulator over the GAIA-1 world model (GAIA-1 §9: a world model as a simulator).
+
+Legend: T the world model's window (steps), h w the token grid, H W the frame size.
+
+`DrivingSimulator` follows the Gymnasium `Env` API — `reset(seed=, options=)` → (observation, info),
+`step(action)` → (observation, reward, terminated, truncated, info), `observation_space`, `action_space` — without
+depending on gymnasium: the two spaces are small `Box`es with the same fields (`low`, `high`, `shape`, `dtype`,
+`contains`, `sample`), so a policy written against Gymnasium runs unchanged, and `gymnasium.Env` can wrap it in
+three lines where a user wants its wrappers. The observation is the next camera frame at the world model's rate
+(6.25 Hz for the reference weights), decoded frame by frame by the tokenizer; the action is (speed m/s,
+curvature 1/m), held for one step. Rewards are the user's business (0.0 here); an episode is truncated after
+`max_steps`.
+
+Each step samples one frame given the last T − 1 frames and their actions: the same window and positions as an
+open-loop rollout of the same actions (`Gaia1Pipeline.sample_batch`), so a closed-loop episode fed the actions of
+an open-loop rollout reproduces it token for token once the window slides (tests/test_simulator.py). This is the
+full re-prefill path: every step re-embeds its window. Keeping the KV cache across steps (issue 25, item 2) needs
+relative temporal positions, since GAIA-1's learned absolute ones change when the window slides.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from gaia_app.data.transforms import to_uint8
+from gaia_app.pipelines.gaia1 import Gaia1Pipeline
+from gaia_app.pipelines.gaia1_inputs import COMMAND_RANGES, DEFAULT_SPEED, folder_clip, prepare_context, synthetic_clip
+
+CONTEXTS = ("synthetic", "folder", "none")
+
+
+@dataclass(frozen=True)
+class Box:
+    """A box-shaped space with Gymnasium's `spaces.Box` fields: low, high (shape), dtype."""
+
+    low: np.ndarray
+    high: np.ndarray
+    dtype: type
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(self.low.shape)
+
+    def contains(self, x: Any) -> bool:
+        x = np.asarray(x)
+        return x.shape == self.shape and bool(np.all(np.isfinite(x)) and np.all(x >= self.low) and np.all(x <= self.high))
+
+    def sample(self, rng: np.random.Generator | None = None) -> np.ndarray:
+        rng = rng or np.random.default_rng()
+        if np.issubdtype(self.dtype, np.integer):
+            return rng.integers(self.low, self.high, endpoint=True).astype(self.dtype)
+        return rng.uniform(self.low, self.high).astype(self.dtype)
+
+
+def action_space() -> Box:
+    """(speed m/s, curvature 1/m) within the range a command may take (gaia1_inputs.COMMAND_RANGES)."""
+    (speed_low, speed_high), (curv_low, curv_high) = COMMAND_RANGES["speed"], COMMAND_RANGES["curvature"]
+    return Box(np.array([speed_low, curv_low], np.float32), np.array([speed_high, curv_high], np.float32), np.float32)
+
+
+def checked_action(action: Any, space: Box) -> np.ndarray:
+    """The action as float32 (2,), or a ValueError naming what is wrong and the accepted range."""
+    try:
+        value = np.asarray(action, dtype=np.float32)
+    except (TypeError, ValueError):
+        raise ValueError(f"action {action!r}: expected two numbers (speed m/s, curvature 1/m)") from None
+    if value.shape != space.shape:
+        raise ValueError(f"action of shape {value.shape}: expected {space.shape} (speed m/s, curvature 1/m)")
+    if not np.all(np.isfinite(value)):
+        raise ValueError(f"action {value.tolist()}: speed and curvature must be finite numbers")
+    if not space.contains(value):
+        raise ValueError(f"action {value.tolist()}: speed must lie in [{space.low[0]:g}, {space.high[0]:g}] m/s and "
+                         f"curvature in [{space.low[1]:g}, {space.high[1]:g}] 1/m")
+    return value
+
+
+class DrivingSimulator:
+    """Gymnasium-style closed-loop simulator (module docstring).
+
+    Args:
+        pipeline: a Gaia1Pipeline (e.g. `Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=False)`); its token
+            sampler and guidance are used as they are.
+        context_frames: real frames that start an episode (at the world model's rate).
+        max_steps: steps before an episode is truncated.
+    """
+
+    metadata = {"render_modes": ["rgb_array"]}
+
+    def __init__(self, pipeline: Gaia1Pipeline, context_frames: int = 4, max_steps: int = 63):
+        if context_frames < 1 or max_steps < 1:
+            raise ValueError(f"context_frames={context_frames}, max_steps={max_steps}: expected ≥ 1 each")
+        self.pipeline, self.context_frames, self.max_steps = pipeline, context_frames, max_steps
+        height, width = pipeline.image_size
+        self.observation_space = Box(np.zeros((height, width, 3), np.uint8), np.full((height, width, 3), 255, np.uint8),
+                                     np.uint8)
+        self.action_space = action_space()
+        self.window = int(pipeline.world_model.frames)
+        self.tokens: torch.Tensor | None = None  # (n, h, w) every frame of the episode so far
+        self.actions: list[np.ndarray] = []
+        self.prompt: str | None = None
+        self.generator: torch.Generator | None = None
+        self.steps = 0
+        self.last_frame: np.ndarray | None = None
+
+    # ---- Gymnasium API ----------------------------------------------------------------------------
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        """Start an episode. options: context ("synthetic": clip `index` of the world `world_seed`; "folder": clip
+        `index` of the clip folder `folder`; "none": the first frame is generated from `prompt` alone), prompt (a
+        caption for every step, or None). seed: the token sampler's noise."""
+        options = dict(options or {})
+        unknown = set(options) - {"context", "index", "world_seed", "folder", "prompt"}
+        if unknown:
+            raise ValueError(f"reset options {sorted(unknown)}: expected context, index, world_seed, folder, prompt")
+        context = options.get("context", "synthetic")
+        if context not in CONTEXTS:
+            raise ValueError(f"reset option context={context!r}: expected one of {CONTEXTS}")
+        self.prompt = options.get("prompt")
+        self.generator = torch.Generator(device=self.pipeline.device).manual_seed(0 if seed is None else int(seed))
+        self.steps = 0
+        if context == "none":
+            if self.prompt is None:
+                raise ValueError("reset option context='none' generates the first frame from a prompt: give prompt")
+            self.tokens = torch.zeros(0, *self.pipeline.token_grid, dtype=torch.long, device=self.pipeline.device)
+            self.actions = []
+            frame = self.advance(np.array([DEFAULT_SPEED, 0.0], np.float32))
+            return frame, self.info()
+        clip = (synthetic_clip(int(options.get("world_seed", 1000)), int(options.get("index", 0)),
+                               *self.pipeline.image_size, (self.context_frames - 1) / self.pipeline.rate + 0.5)
+                if context == "synthetic" else folder_clip(options.get("folder") or "", int(options.get("index", 0))))
+        prepared = prepare_context(clip, self.context_frames, self.context_frames, self.pipeline.rate,
+                                   *self.pipeline.image_size)
+        self.tokens = self.pipeline.encode(prepared.frames[: self.context_frames])
+        own = prepared.actions[: self.context_frames] if prepared.actions is not None else None
+        self.actions = ([np.asarray(a, np.float32) for a in own] if own is not None
+                        else [np.array([DEFAULT_SPEED, 0.0], np.float32)] * self.context_frames)
+        self.last_frame = self.observe(self.tokens[-1])
+        return self.last_frame, self.info()
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """Drive one step with `action` (speed m/s, curvature 1/m) → the next frame, reward 0.0, terminated False,
+        truncated after max_steps, info (step, time_s, action, the frame's tokens)."""
+        if self.tokens is None:
+            raise RuntimeError("call reset() before step()")
+        frame = self.advance(checked_action(action, self.action_space))
+        self.steps += 1
+        return frame, 0.0, False, self.steps >= self.max_steps, self.info()
+
+    def render(self) -> np.ndarray | None:
+        """The last observation (render mode "rgb_array")."""
+        return self.last_frame
+
+    def close(self) -> None:
+        self.tokens = None
+
+    # ---- internals --------------------------------------------------------------------------------
+
+    def advance(self, action: np.ndarray) -> np.ndarray:
+        """Sample the next frame under `action` from the last T − 1 frames (the world model's window)."""
+        self.actions.append(action)
+        keep = min(len(self.tokens), self.window - 1)
+        context = self.tokens[len(self.tokens) - keep:]
+        # one action before the window as lead: the change of the window's first action, as an open-loop rollout has it
+        lead = min(1, len(self.tokens) - keep)
+        actions = torch.from_numpy(np.stack(self.actions[len(self.actions) - keep - 1 - lead:]))[None]
+        text = (None if self.prompt is None else
+                self.pipeline.encode_text_batch([[self.prompt] * (lead + keep + 1)]))
+        sampled, _ = self.pipeline.sample_batch(context[None], 1, text, actions, None, 1, self.generator, lead)
+        new = sampled[0, -1].to(self.tokens.device)
+        self.tokens = torch.cat([self.tokens, new[None]])
+        self.last_frame = self.observe(new)
+        return self.last_frame
+
+    def observe(self, tokens: torch.Tensor) -> np.ndarray:
+        """Tokens (h, w) → the frame (H, W, 3) uint8, decoded by the tokenizer."""
+        frame = self.pipeline.tokenizer_frames(tokens[None, None])[0, 0]
+        return to_uint8(frame).permute(1, 2, 0).contiguous().numpy()
+
+    def info(self) -> dict[str, Any]:
+        return {"step": self.steps, "time_s": self.steps / self.pipeline.rate,
+                "action": self.actions[-1].tolist() if self.actions else None,
+                "tokens": self.tokens[-1].cpu().numpy() if self.tokens is not None and len(self.tokens) else None}
