@@ -76,3 +76,31 @@ def test_an_episode_can_start_from_a_prompt_alone(pipeline: Gaia1Pipeline) -> No
     assert env.observation_space.contains(obs) and len(env.tokens) == 1
     obs, *_ = env.step([8.0, 0.0])
     assert len(env.tokens) == 2
+
+
+def test_the_controller_and_the_trajectory() -> None:
+    from gaia_app.tasks.drive import pose_step, speed_command
+
+    assert speed_command(8.0, 12.0, 0.5, 1.0) == 9.0 and speed_command(8.0, 12.0, 0.1, 1.0) == pytest.approx(8.4)
+    assert speed_command(0.5, 0.0, 1.0, 2.0) == 0.0  # never a negative speed
+    pose = np.zeros(3)
+    for _ in range(100):  # one full circle of radius 20 m at 10 m/s
+        pose = pose_step(pose, 10.0, 1 / 20, 2 * np.pi * 20 / 10 / 100)
+    np.testing.assert_allclose(pose[:2], [0.0, 0.0], atol=1e-9)
+    assert pose[2] == pytest.approx(2 * np.pi)
+    np.testing.assert_allclose(pose_step(np.zeros(3), 10.0, 0.0, 0.5), [5.0, 0.0, 0.0])
+
+
+def test_closed_loop_drive_writes_its_recording_and_record(tmp_path) -> None:
+    import json
+
+    from rerun.chunk import RrdReader
+
+    from gaia_app.tasks.drive import main
+
+    results = main(["--seconds", "1", "--out", str(tmp_path), "--target-speed", "10"])
+    record = json.loads((tmp_path / "drive.json").read_text())
+    assert len(record["steps"]) == len(results["steps"]) == 7 and record["target_speed"] == 10.0
+    assert all(0 <= s["command"][0] <= 70 and np.isfinite(s["estimated_speed"]) for s in record["steps"])
+    entities = {c.entity_path for c in RrdReader(str(tmp_path / "drive.rrd")).stream().collect().stream().to_chunks()}
+    assert {"/camera", "/speed/commanded", "/speed/estimated", "/trajectory"} <= entities
