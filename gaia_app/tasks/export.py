@@ -30,6 +30,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from gaia_app.eval.controllability import PROBE_INFO, PROBE_WEIGHTS, load_probes
+from gaia_app.pipelines.checkpoint_nets import COMPONENTS, component_of
 from gaia_app.utils.checkpoint_io import read_checkpoint
 from gaia_app.utils.shipped import export_component, read_config, shipped_folder, weight_files
 
@@ -73,13 +74,15 @@ def export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     return results
 
 
-def checked_checkpoint(path: str, role: str, module: str) -> dict[str, Any]:
-    """The checkpoint dict of `path` (read weights-only), refused with a message naming `role` unless its model is
-    a `module` (e.g. "VideoTokenizerModule")."""
+def checked_checkpoint(path: str, role: str, component: str) -> dict[str, Any]:
+    """The checkpoint dict of `path` (read weights-only), refused with a message naming `role` unless it holds a
+    `component` of pipelines/checkpoint_nets.COMPONENTS (e.g. "video_tokenizer")."""
     checkpoint = read_checkpoint(path)
-    target = str((checkpoint.get("hyper_parameters") or {}).get("model_cfg", {}).get("_target_", "unknown"))
-    if target.rsplit(".", 1)[-1] != module:
-        raise TypeError(f"{role}={path} holds a {target.rsplit('.', 1)[-1]} checkpoint, expected a {module}")
+    config = (checkpoint.get("hyper_parameters") or {}).get("model_cfg") or {}
+    if component_of(config) != component:
+        held = str(config.get("_target_", "unknown")).rsplit(".", 1)[-1]
+        raise TypeError(f"{role}={path} holds a {held} checkpoint, expected a "
+                        f"{COMPONENTS[component][0].rsplit('.', 1)[-1]}")
     return checkpoint
 
 
@@ -90,8 +93,8 @@ def export_gaia2(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             raise ValueError(f"model=gaia2 mode=export needs {key}=<checkpoint of a GAIA-2 "
                              f"{'video tokenizer' if key == 'tokenizer_ckpt' else 'latent world model'}>")
     out = Path(cfg.out_dir)
-    tokenizer = checked_checkpoint(cfg.tokenizer_ckpt, "tokenizer_ckpt", "VideoTokenizerModule")
-    world_model = checked_checkpoint(cfg.world_model_ckpt, "world_model_ckpt", "LatentWorldModelModule")
+    tokenizer = checked_checkpoint(cfg.tokenizer_ckpt, "tokenizer_ckpt", "video_tokenizer")
+    world_model = checked_checkpoint(cfg.world_model_ckpt, "world_model_ckpt", "latent_world_model")
     model_cfg = world_model["hyper_parameters"]["model_cfg"]
     nets = ["net"] + (["text_encoder"] if model_cfg.get("text_encoder") else [])
     return {"out_dir": str(out),

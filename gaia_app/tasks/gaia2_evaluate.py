@@ -109,8 +109,9 @@ def iou_row(probe: Any, videos: list[torch.Tensor], truth: list[torch.Tensor], b
 
 
 def agent_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
-                probe: Any, generator: torch.Generator) -> dict[str, Any]:
-    """Rows of the agent-control table (module docstring)."""
+                probe: Any, generator: torch.Generator) -> tuple[dict[str, Any], dict[str, list[torch.Tensor]]]:
+    """Rows of the agent-control table (module docstring), and the per-scene videos (v, T, 3, H, W) of its real,
+    tokenized and conditioned rows, which the cross-view table scores too."""
     e, steps = cfg.model.evaluate, cfg.model.steps
     frames = steps * pipeline.temporal
     s = f"{e.cfg_scale:g}"
@@ -140,8 +141,9 @@ def agent_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Syn
             x = world.from_scratch(shape, cond.without(*drop), torch.Generator(real.device).manual_seed(noise_seed))
             rows[name].append(pipeline.decode(x)[0].cpu())
         world.guidance = plain
-    return {"scenes": len(scenes), "latent_steps": steps, "frames": frames,
-            "rows": {name: iou_row(probe, videos, truth, boxes) for name, videos in rows.items()}}
+    table = {"scenes": len(scenes), "latent_steps": steps, "frames": frames,
+             "rows": {name: iou_row(probe, videos, truth, boxes) for name, videos in rows.items()}}
+    return table, {name: rows[name] for name in SHARED_VIDEOS}
 
 
 def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
@@ -208,38 +210,40 @@ def one_camera(clip: LatentClip, camera: int) -> LatentClip:
                    cameras=[clip.cameras[camera]])
 
 
+# agent-table rows whose videos the cross-view table reuses → its own row names
+SHARED_VIDEOS = {"real frames": "real frames (ceiling)", "tokenized real": "tokenized real",
+                 "model, agent conditions": "model, cameras generated together"}
+
+
 def cross_view_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
-                     generator: torch.Generator) -> dict[str, Any]:
-    """Rows of the cross-view table (module docstring): seam error per scene, mean ± 95 % interval over scenes."""
+                     shared: dict[str, list[torch.Tensor]], generator: torch.Generator) -> dict[str, Any]:
+    """Rows of the cross-view table (module docstring): seam error per scene, mean ± 95 % interval over scenes.
+    shared: the agent table's per-scene videos (real, tokenized, generated with every camera together); only the
+    floor, each camera generated alone, is sampled here."""
     steps = cfg.model.steps
-    frames = steps * pipeline.temporal
-    rows: dict[str, list[float]] = {"real frames (ceiling)": [], "tokenized real": [],
-                                    "model, cameras generated together": [],
-                                    "model, each camera generated alone (floor)": []}
-    pairs: list[tuple[int, int]] = []
-    for sample, clip in tqdm(scenes, desc="cross-view"):
-        latents, cond = pipeline.window(clip, 0, steps)
-        intrinsics, extrinsics = cond.intrinsics[0].cpu(), cond.extrinsics[0].cpu()
-        pairs = overlapping_pairs(intrinsics, extrinsics, *cond.image_size)
-        if not pairs:
-            raise ValueError(f"model=gaia2 mode=evaluate: the cameras {[c.name for c in clip.cameras]} of `data` do "
-                             "not overlap; cross-view consistency needs adjacent views (e.g. front, front_left)")
+    rows: dict[str, list[float]] = {name: [] for name in [*SHARED_VIDEOS.values(),
+                                                          "model, each camera generated alone (floor)"]}
+    _, cond = pipeline.window(scenes[0][1], 0, steps)
+    intrinsics, extrinsics = cond.intrinsics[0].cpu(), cond.extrinsics[0].cpu()
+    pairs = overlapping_pairs(intrinsics, extrinsics, *cond.image_size)
+    if not pairs:
+        raise ValueError(f"model=gaia2 mode=evaluate: the cameras {[c.name for c in scenes[0][1].cameras]} of `data` "
+                         "do not overlap; cross-view consistency needs adjacent views (e.g. front, front_left)")
+    for k, (_, clip) in enumerate(tqdm(scenes, desc="cross-view")):
         noise_seed = int(torch.randint(2**31, (), generator=generator))
-        together = pipeline.world.from_scratch(tuple(latents.shape), cond, torch.Generator(latents.device).manual_seed(noise_seed))
         alone = []
         for camera in range(len(clip.cameras)):
             single, single_cond = pipeline.window(one_camera(clip, camera), 0, steps)
             x = pipeline.world.from_scratch(tuple(single.shape), single_cond,
-                                            torch.Generator(single.device).manual_seed(noise_seed + 1 + camera))
+                                            torch.Generator(single.device).manual_seed(noise_seed + camera))
             alone.append(pipeline.decode(x)[0, 0].cpu())
-        videos = {"real frames (ceiling)": to_float(torch.from_numpy(sample.clip.frames[:, :frames])),
-                  "tokenized real": pipeline.decode(latents)[0].cpu(),
-                  "model, cameras generated together": pipeline.decode(together)[0].cpu(),
-                  "model, each camera generated alone (floor)": torch.stack(alone)}
+        videos = {row: shared[name][k] for name, row in SHARED_VIDEOS.items()}
+        videos["model, each camera generated alone (floor)"] = torch.stack(alone)
         for name, video in videos.items():
             rows[name].append(float(seam_errors(video, intrinsics, extrinsics, pairs).mean()))
     names = [c.name for c in scenes[0][1].cameras]
-    return {"scenes": len(scenes), "frames": frames, "pairs": [f"{names[a]}/{names[b]}" for a, b in pairs],
+    return {"scenes": len(scenes), "frames": steps * pipeline.temporal,
+            "pairs": [f"{names[a]}/{names[b]}" for a, b in pairs],
             "rows": {name: mean_interval(values).as_dict() for name, values in rows.items()}}
 
 
@@ -285,11 +289,11 @@ def gaia2_evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     scenes = [(s, cut_steps(pipeline.encode(s.clip), cfg.model.steps))
               for s in rig_samples(cfg, cfg.context.seed, e.contexts, frames)]
     generator = torch.Generator().manual_seed(int(cfg.seed))
-    results = {"cameras": [c.name for c in scenes[0][1].cameras], "probe_fit": fit,
-               "fidelity": fidelity_table(cfg, pipeline, scenes, segmentation, generator),
-               "agents": agent_table(cfg, pipeline, scenes, segmentation, generator),
-               "actions": action_table(cfg, pipeline, scenes, dynamics, generator),
-               "cross_view": cross_view_table(cfg, pipeline, scenes, generator)}
+    fidelity = fidelity_table(cfg, pipeline, scenes, segmentation, generator)
+    agents, shared = agent_table(cfg, pipeline, scenes, segmentation, generator)
+    results = {"cameras": [c.name for c in scenes[0][1].cameras], "probe_fit": fit, "fidelity": fidelity,
+               "agents": agents, "actions": action_table(cfg, pipeline, scenes, dynamics, generator),
+               "cross_view": cross_view_table(cfg, pipeline, scenes, shared, generator)}
     atomic_write_text(run_dir / "gaia2_evaluation.json", json.dumps(results, indent=2))
     table = markdown(results)
     atomic_write_text(run_dir / "gaia2_evaluation.md", table)
