@@ -171,24 +171,28 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     assert set(results["agents"]["rows"]) == {"real frames", "tokenized real", "model, agent conditions",
                                               "model, plain CFG ×3", "model, selective CFG ×3",
                                               "model, selective CFG ×3, full second pass", "model, agents dropped"}
-    assert set(results["actions"]["rows"]) == {"real frames, own actions", "tokenized real, own actions",
-                                               "model, commanded actions", "model, actions dropped",
-                                               "real continuation vs the command"}
+    actions = results["actions"]
+    assert set(actions["rows"]) == {"ceiling", "tokenized", "model", "floor", "reference"}
+    assert actions["contrasts"] == {"speed_contrast": ["accelerate/straight", "brake/straight"],
+                                    "curvature_contrast": ["keep/left", "keep/right"]}
+    assert set(actions["checks"]) == {"speed_contrast", "curvature_contrast"}
     views = results["cross_view"]
     assert views["pairs"] == ["front/front_left", "front/front_right"] and views["scenes"] == 2
     assert set(views["rows"]) == {"real frames (ceiling)", "tokenized real", "model, cameras generated together",
                                   "model, each camera generated alone (floor)"}
     assert all(0 <= row["mean"] < 2 and row["n"] == 2 for row in views["rows"].values())
     for row in results["actions"]["rows"].values():
-        assert np.isfinite(row["speed_mae"]) and np.isfinite(row["curvature_mae"])
+        assert all(np.isfinite(row[m]["mean"]) and row[m]["n"] == 2 for m in ("speed_contrast", "curvature_contrast",
+                                                                            "speed_mae", "curvature_mae"))
     fidelity = results["fidelity"]
     assert fidelity["clips"] == 6 and fidelity["context_frames"] == 8 and fidelity["generated_frames"] == 8
     assert set(fidelity["rows"]) == {"model (rollouts)", "tokenized real (ceiling)", "held frame (floor)"}
     assert all(set(row) == {"psnr", "ssim", "fvmd", "agent_iou"} for row in fidelity["rows"].values())
     table = (tmp_path / "gaia2_evaluation.md").read_text()
-    assert "IoU with agent masks" in table and "speed MAE" in table and "held frame (floor)" in table
+    assert "IoU with agent masks" in table and "speed contrast error" in table and "held frame (floor)" in table
+    assert "| probe check: ceiling ≤ ½ floor and ≤ ½ reference |" in table
     assert "| model, each camera generated alone (floor) |" in table
-    assert results["actions"]["scored_frames"] == 7  # 8 generated frames → 7 pairs after the first
+    assert results["actions"]["scored_steps"] == 7  # 8 generated frames → 7 pairs after the first
 
     # one table with a GAIA-1 evaluation run (its evaluation.json layout, tasks/evaluate.py)
     gaia1 = tmp_path / "gaia1"

@@ -301,19 +301,7 @@ def markdown(results: dict[str, Any]) -> str:
              f"horizon-mean speed ({speed}) and curvature ({curvature}) of two futures of one context; a rollout "
              "that ignores its commands scores the commanded difference. MAE: mean |probed − commanded| over all "
              "commands (diagnostic; it carries the probe's per-scene bias).", "",
-             "| action adherence | speed contrast error (m/s) | curvature contrast error (1/m) | speed MAE (m/s) | "
-             "curvature MAE (1/m) |", "|---|---|---|---|---|"]
-    for key, name in ACTION_ROWS.items():
-        row = actions["rows"][key]
-        lines.append(f"| {name} | {fmt(row['speed_contrast'], 3)} | {fmt(row['curvature_contrast'], 4)} | "
-                     f"{fmt(row['speed_mae'], 3)} | {fmt(row['curvature_mae'], 4)} |")
-    checks = actions["checks"]
-    lines.append("| target: model ≤ floor − ½ (floor − ceiling) | " + " | ".join(
-        f"{checks[m]['target']:.{d}f} ({'met' if checks[m]['model_meets_target'] else 'missed'})"
-        for m, d in zip(CONTRASTS, (3, 4))) + " | | |")
-    lines.append("| probe check: ceiling ≤ ½ floor and ≤ ½ reference | " + " | ".join(
-        f"{'yes' if checks[m]['probe_reads_it'] else 'NO'} ({checks[m]['ceiling_over_floor']:.2f}, "
-        f"{checks[m]['ceiling_over_reference']:.2f})" for m in CONTRASTS) + " | | |")
+             *action_rows_markdown(actions, ACTION_ROWS)]
     lines += ["", f"Text adherence: share of rollouts ({text['rollouts_per_prompt']} per prompt, generated from the "
               f"prompt alone; {text.get('floor_rollouts', text['rollouts_per_prompt'])} unprompted rollouts for the floor, "
               "shared by every prompt) whose frames mostly read the prompted value; [95 % Wilson interval].", "",
@@ -325,6 +313,24 @@ def markdown(results: dict[str, Any]) -> str:
         f"{'yes' if text['checks'][t]['probe_reads_it'] else 'NO'} ({cell_accuracy(text['rows']['ceiling'][t])})"
         for t in text["targets"]) + " |")
     return "\n".join(lines) + "\n"
+
+
+def action_rows_markdown(actions: dict[str, Any], names: dict[str, str]) -> list[str]:
+    """The action table's header, one line per row of `names` (key → label), its targets and probe checks."""
+    lines = ["| action adherence | speed contrast error (m/s) ↓ | curvature contrast error (1/m) ↓ | speed MAE (m/s) ↓ | "
+             "curvature MAE (1/m) ↓ |", "|---|---|---|---|---|"]
+    for key, name in names.items():
+        row = actions["rows"][key]
+        lines.append(f"| {name} | {fmt(row['speed_contrast'], 3)} | {fmt(row['curvature_contrast'], 4)} | "
+                     f"{fmt(row['speed_mae'], 3)} | {fmt(row['curvature_mae'], 4)} |")
+    checks = actions["checks"]
+    lines.append("| target: model ≤ floor − ½ (floor − ceiling) | " + " | ".join(
+        f"{checks[m]['target']:.{d}f} ({'met' if checks[m]['model_meets_target'] else 'missed'})"
+        for m, d in zip(CONTRASTS, (3, 4))) + " | | |")
+    lines.append("| probe check: ceiling ≤ ½ floor and ≤ ½ reference | " + " | ".join(
+        f"{'yes' if checks[m]['probe_reads_it'] else 'NO'} ({checks[m]['ceiling_over_floor']:.2f}, "
+        f"{checks[m]['ceiling_over_reference']:.2f})" for m in CONTRASTS) + " | | |")
+    return lines
 
 
 def fmt(estimate: dict[str, float], digits: int) -> str:

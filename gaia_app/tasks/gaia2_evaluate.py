@@ -16,11 +16,8 @@ conditioning boxes projected into each camera, for
                                 the second pass sees those tokens alone (the report's saving)
     ..., full second pass       the same regions guided from a full unconditional pass (the straightforward variant)
     model, agents dropped       generated with the agent condition dropped (the floor)
-Action adherence (front camera, GAIA-1's inverse-dynamics probe): model.context_steps clean steps, then
-model.steps − context_steps steps generated under each of `commands` (speed, curvature presets); the mean absolute
-error of the probed actions against the commanded ones, for the model, the model with actions dropped (the floor),
-the real continuation (what happened instead of the command) and, scored against their own logged actions, the real
-and tokenized frames (the probe's and the tokenizer's ceilings).
+Action adherence (front camera): GAIA-1's controllability protocol, contrast errors against a re-simulated
+ceiling, a floor with actions dropped and the real continuation (gaia_app/tasks/gaia2_actions.py).
 Fidelity (every camera; the metrics of `evaluate.metrics`, shared with GAIA-1's mode=evaluate and scored by the same
 code, tasks/evaluate.score): the context steps continued under the scene's own conditions, scored from the first
 generated frame against the real continuation, next to the tokenized real clip (ceiling) and the last context frame
@@ -50,14 +47,13 @@ from gaia_app.data.latent_cache import LatentClip
 from gaia_app.data.synthetic.generate import SyntheticSample
 from gaia_app.data.transforms import to_float
 from gaia_app.eval.agent_iou import agent_iou, train_agent_probe
-from gaia_app.eval.controllability import action_error, probe_clips, train_probes
 from gaia_app.eval.cross_view import overlapping_pairs, seam_errors
 from gaia_app.eval.intervals import mean_interval
 from gaia_app.eval.report import ARROWS
 from gaia_app.models.gaia2.conditioning import project_boxes
-from gaia_app.pipelines.gaia1_inputs import future_actions
-from gaia_app.pipelines.gaia2 import Gaia2Pipeline, with_labels
+from gaia_app.pipelines.gaia2 import Gaia2Pipeline
 from gaia_app.pipelines.gaia2_world_model import Guidance
+from gaia_app.tasks import gaia2_actions
 from gaia_app.tasks.evaluate import check_metrics, feature_metrics, score
 from gaia_app.tasks.gaia2_generate import cut_steps, load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
@@ -90,14 +86,14 @@ def box_masks(cond: Any, frames: int, temporal: int) -> torch.Tensor:
 
 
 def train_probes_for(cfg: DictConfig, frames: int) -> tuple[Any, Any, dict[str, Any]]:
-    """The agent segmentation probe (every camera) and the inverse-dynamics probe (front camera) on the probe world."""
+    """The agent segmentation probe (every camera, the probe world) and the inverse-dynamics probe (front camera,
+    gaia2_actions.train_action_probe)."""
     e = cfg.model.evaluate
     samples = rig_samples(cfg, e.probe_seed, e.probe_clips, frames)
     images = torch.cat([to_float(torch.from_numpy(s.clip.frames)) for s in samples])  # (N·v, T, 3, H, W)
     masks = torch.cat([agent_masks(s, frames) for s in samples])
     segmentation, agent_fit = train_agent_probe(images, masks, steps=e.probe_steps, seed=cfg.seed)
-    clips = [s.clip for s in samples]
-    dynamics, _, action_fit = train_probes(probe_clips(clips, clips[0].fps, frames), e.probe_steps, seed=cfg.seed)
+    dynamics, action_fit = gaia2_actions.train_action_probe(cfg, frames)
     return segmentation, dynamics, {"agent_probe": agent_fit, "action_probe": action_fit}
 
 
@@ -144,39 +140,6 @@ def agent_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Syn
     table = {"scenes": len(scenes), "latent_steps": steps, "frames": frames,
              "rows": {name: iou_row(probe, videos, truth, boxes) for name, videos in rows.items()}}
     return table, {name: rows[name] for name in SHARED_VIDEOS}
-
-
-def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
-                 probe: Any, generator: torch.Generator) -> dict[str, Any]:
-    """Rows of the action-adherence table (module docstring)."""
-    g = cfg.model
-    c, new, tau = g.context_steps, g.steps - g.context_steps, pipeline.temporal
-    first, frames = c * tau, g.steps * tau
-    scored: dict[str, list[tuple[torch.Tensor, torch.Tensor]]] = {
-        "real frames, own actions": [], "tokenized real, own actions": [], "model, commanded actions": [],
-        "model, actions dropped": [], "real continuation vs the command": []}
-    for sample, clip in tqdm(scenes, desc="action adherence"):
-        own = torch.from_numpy(clip.actions[:frames]).float()
-        real_latents, _ = pipeline.window(clip, 0, g.steps)
-        front = lambda video: video[0].cpu()  # noqa: E731  (the probe reads the first camera, as in training)
-        scored["real frames, own actions"].append((to_float(torch.from_numpy(sample.clip.frames[0, :frames])), own))
-        scored["tokenized real, own actions"].append((front(pipeline.decode(real_latents)[0]), own))
-        for speed, curvature in cfg.model.evaluate.commands:
-            actions = future_actions(speed, curvature, frames - first, clip.fps, float(clip.actions[first - 1, 0]))
-            target = with_labels(clip, first, actions)
-            command = torch.from_numpy(target.actions[:frames]).float()
-            context, _ = pipeline.window(target, 0, c)
-            _, cond = pipeline.window(target, 0, g.steps)
-            noise_seed = int(torch.randint(2**31, (), generator=generator))
-            for name, chunk in (("model, commanded actions", cond), ("model, actions dropped", cond.without("action"))):
-                x = pipeline.world.rollout(context, [chunk], new, torch.Generator(context.device).manual_seed(noise_seed))
-                scored[name].append((front(pipeline.decode(x)[0]), command))
-            scored["real continuation vs the command"].append(
-                (to_float(torch.from_numpy(sample.clip.frames[0, :frames])), command))
-    rows = {name: action_error(probe, torch.stack([v for v, _ in pairs]), torch.stack([a for _, a in pairs]), first + 1)
-            for name, pairs in scored.items()}
-    return {"scenes": len(scenes), "commands": [list(cmd) for cmd in cfg.model.evaluate.commands],
-            "context_frames": first, "scored_frames": frames - first - 1, "rows": rows}
 
 
 def fidelity_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
@@ -263,11 +226,7 @@ def markdown(results: dict[str, Any]) -> str:
              "| frames | IoU with agent masks ↑ | IoU with conditioning boxes ↑ |", "|---|---:|---:|"]
     lines += [f"| {name} | {row['iou_agent_masks']:.3f} | {row['iou_conditioning_boxes']:.3f} |"
               for name, row in agents["rows"].items()]
-    actions = results["actions"]
-    lines += ["", f"Action adherence (front camera, {actions['scenes']} scenes × {len(actions['commands'])} commands, "
-              f"{actions['scored_frames']} generated frame pairs each)", "",
-              "| frames | speed MAE (m/s) ↓ | curvature MAE (1/m) ↓ |", "|---|---:|---:|"]
-    lines += [f"| {name} | {row['speed_mae']:.3f} | {row['curvature_mae']:.4f} |" for name, row in actions["rows"].items()]
+    lines += ["", *gaia2_actions.markdown(results["actions"])]
     views = results["cross_view"]
     lines += ["", f"Cross-view consistency ({views['scenes']} held-out scenes × {views['frames']} frames, camera pairs "
               f"{', '.join(views['pairs'])}; seam error: mean |camera − neighbour warped by the homography at infinity| "
@@ -292,7 +251,7 @@ def gaia2_evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     fidelity = fidelity_table(cfg, pipeline, scenes, segmentation, generator)
     agents, shared = agent_table(cfg, pipeline, scenes, segmentation, generator)
     results = {"cameras": [c.name for c in scenes[0][1].cameras], "probe_fit": fit, "fidelity": fidelity,
-               "agents": agents, "actions": action_table(cfg, pipeline, scenes, dynamics, generator),
+               "agents": agents, "actions": gaia2_actions.action_table(cfg, pipeline, scenes, dynamics, generator),
                "cross_view": cross_view_table(cfg, pipeline, scenes, shared, generator)}
     atomic_write_text(run_dir / "gaia2_evaluation.json", json.dumps(results, indent=2))
     table = markdown(results)

@@ -144,3 +144,38 @@ def test_box_projection_into_the_rig() -> None:
     assert float((front[0] + front[2]) / 2) == pytest.approx(0.5, abs=0.02)
     assert float(depth[0, 0, 0, 0]) == pytest.approx(15.0 - 1.8 + 2.25, abs=0.3)  # far face: 15 m + half length − camera x
     assert boxes[0, 0, :, 1].abs().max() == 0  # invisible boxes are zeroed, not garbage
+
+
+def test_cell_coverage_is_the_share_of_each_cell_under_the_box() -> None:
+    from gaia_app.models.gaia2.conditioning import cell_coverage
+    cover = cell_coverage(torch.tensor([0.125, 0.0, 0.5, 0.25]), (2, 4))  # x from half a cell to cell 2's end
+    expected = torch.tensor([[0.25, 0.5, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])  # the box spans half of row 0
+    torch.testing.assert_close(cover, expected)
+    assert cell_coverage(torch.zeros(4), (2, 4)).sum() == 0  # an invisible agent's zeroed box paints nothing
+
+
+def test_agent_raster_paints_agents_where_their_boxes_fall_and_only_there() -> None:
+    net, (x, tau) = model(agent_raster=True), latents()
+    near, far = conditions(), conditions()
+    far.agents = agents(3, [[15.0, 1.0, 0.8], [-40.0, 0.0, 0.8]])  # the second agent moves behind the rig
+    keep = net.conditioner.keep_masks(1, x.device)
+    with torch.no_grad():
+        moved = (net.embed(x, near, keep) - net.embed(x, far, keep)).abs().amax(dim=(0, 1, 3))  # per token position
+    gh, gw = 8 // net.patch, 14 // net.patch
+    boxes, _, visible = project_boxes(near.agents, near.intrinsics, near.extrinsics, near.image_size)
+    from gaia_app.models.gaia2.conditioning import cell_coverage
+    covered = (cell_coverage(boxes[0, :, :, 1], (gh, gw)) * visible[0, :, :, 1, None, None]).amax(0) > 0  # (v, gh, gw)
+    covered = rearrange(covered, "v h w -> (v h w)")
+    assert covered.any() and (~covered).any()
+    assert moved[covered].min() > 1e-4 and moved[~covered].max() < 1e-6
+
+
+def test_agent_raster_is_dropped_with_the_agents() -> None:
+    net, (x, tau), cond = model(agent_raster=True), latents(), conditions()
+    plain = model()
+    missing = net.load_state_dict(plain.state_dict(), strict=False).missing_keys  # same weights but the raster's
+    assert missing and all(key.startswith("conditioner.agent_raster") for key in missing)
+    with torch.no_grad():
+        dropped = net(x, tau, cond.without("agents"))
+        without_raster = plain(x, tau, cond.without("agents"))
+    torch.testing.assert_close(dropped, without_raster, atol=1e-6, rtol=0)

@@ -10,6 +10,10 @@ Two routes (GAIA-2 report, world model):
   (b, t, m, d) with a mask. The report's scenario embeddings come from a proprietary Wayve model; with no such
   model or labels to feed them, this implementation has no scenario input. A learned null token is always present, so
   attention never runs over nothing.
+Optionally (`agent_raster`, off in the paper preset) the agent tokens are also painted onto the latent grid: each
+token position receives the agent tokens of its camera weighted by how much of its cell their projected box covers.
+Cross-attention must learn where a box lies from its coordinates; the raster says it at the right place, which a
+small model trained briefly needs before agents show (docs/latent_world_model.md, "Agents painted on the grid").
 Geometry is added to the tokens, not attended: each camera's intrinsics and extrinsics through an MLP
 (one network serves any rig and any number of cameras), timestamps as sine-cosine features (variable
 frame rates).
@@ -118,6 +122,18 @@ def project_boxes(agents: AgentBoxes3d, intrinsics: torch.Tensor, extrinsics: to
     return torch.where(visible[..., None], boxes, torch.zeros_like(boxes)), depth * visible, visible
 
 
+def cell_coverage(boxes: torch.Tensor, grid: tuple[int, int]) -> torch.Tensor:
+    """Share of each of the gh × gw cells of the unit image covered by each box: boxes (..., 4) as
+    (x0, y0, x1, y1) in [0, 1] → (..., gh, gw) in [0, 1]."""
+    gh, gw = grid
+    edges_y = torch.linspace(0, 1, gh + 1, device=boxes.device, dtype=boxes.dtype)
+    edges_x = torch.linspace(0, 1, gw + 1, device=boxes.device, dtype=boxes.dtype)
+    x0, y0, x1, y1 = (boxes[..., i, None] for i in range(4))
+    across = (torch.minimum(edges_x[1:], x1) - torch.maximum(edges_x[:-1], x0)).clamp_min(0) * gw  # (..., gw)
+    down = (torch.minimum(edges_y[1:], y1) - torch.maximum(edges_y[:-1], y0)).clamp_min(0) * gh  # (..., gh)
+    return down[..., :, None] * across[..., None, :]
+
+
 def fourier(x: torch.Tensor, dim: int, scale: float) -> torch.Tensor:
     """Sine-cosine features (…, dim) of a scalar tensor (…) multiplied by `scale` (positions in that unit)."""
     return sincos_1d((x * scale).flatten(), dim).reshape(*x.shape, dim)
@@ -136,12 +152,13 @@ class WorldConditioner(nn.Module):
             gaia_app.data.metadata), one token per field.
         text_dim: width of the text/image vector (0: not used).
         agent_categories: number of agent categories.
+        agent_raster: also paint the agent tokens onto the grid cells their boxes cover (`grid_agents`).
         dropout: {condition: probability} of dropping it per sample while training (classifier-free
             guidance; the report: "aggressive" dropout).
     """
 
     def __init__(self, dim: int, metadata_fields: Mapping[str, int], text_dim: int = 0,
-                 agent_categories: int = 8, dropout: Mapping[str, float] | None = None):
+                 agent_categories: int = 8, dropout: Mapping[str, float] | None = None, agent_raster: bool = False):
         super().__init__()
         self.dim = dim
         self.tau = mlp(dim, dim)
@@ -152,6 +169,7 @@ class WorldConditioner(nn.Module):
         self.agent_geometry = mlp(4 + 1 + 2 + 3, dim)
         self.agent_category = nn.Embedding(agent_categories, dim)
         self.agent_camera = mlp(4 + 12, dim)
+        self.agent_raster = nn.Linear(dim, dim) if agent_raster else None
         self.metadata_fields = dict(metadata_fields)
         self.metadata = nn.ModuleDict({name: nn.Embedding(size, dim) for name, size in self.metadata_fields.items()})
         self.metadata_field = nn.Embedding(max(1, len(self.metadata_fields)), dim)
@@ -224,6 +242,22 @@ class WorldConditioner(nn.Module):
 
     def agent_tokens(self, cond: WorldConditions) -> tuple[torch.Tensor, torch.Tensor]:
         """Agents projected into each camera → tokens (b, t, v·N, d) and visibility (b, t, v·N)."""
+        tokens, _, visible = self.agent_features(cond)
+        return rearrange(tokens, "b t v n d -> b t (v n) d"), rearrange(visible, "b t v n -> b t (v n)")
+
+    def grid_agents(self, cond: WorldConditions, grid: tuple[int, int], keep: Mapping[str, torch.Tensor]
+                    ) -> torch.Tensor | None:
+        """(b, t, v, gh, gw, d): per grid cell, Σ over agents of (share of the cell their box covers) · agent token,
+        projected; None without agent_raster or agents. grid (gh, gw) token cells per camera."""
+        if self.agent_raster is None or not cond.active("agents"):
+            return None
+        tokens, boxes, visible = self.agent_features(cond)
+        cover = cell_coverage(boxes, grid) * (visible & keep["agents"][:, None, None, None])[..., None, None]
+        painted = torch.einsum("btvnhw,btvnd->btvhwd", cover.to(tokens.dtype), tokens)
+        return self.agent_raster(painted)
+
+    def agent_features(self, cond: WorldConditions) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Agent tokens (b, t, v, N, d), their boxes (b, t, v, N, 4) and visibility (b, t, v, N) in every camera."""
         agents = cond.agents
         boxes, depth, visible = project_boxes(agents, cond.intrinsics, cond.extrinsics, cond.image_size)
         v = boxes.shape[2]
@@ -233,7 +267,7 @@ class WorldConditioner(nn.Module):
                               torch.log1p(size)], dim=-1)
         tokens = self.agent_geometry(geometry) + self.agent_category(agents.category)[:, :, None]
         tokens = tokens + self.agent_camera(self.camera_features(cond))[:, None, :, None]
-        return rearrange(tokens, "b t v n d -> b t (v n) d"), rearrange(visible, "b t v n -> b t (v n)")
+        return tokens, boxes, visible
 
     def metadata_tokens(self, metadata: Mapping[str, torch.Tensor], b: int) -> torch.Tensor:
         """(b, F, d): one token per known field present, its value embedding plus a field embedding."""

@@ -38,7 +38,7 @@ class LatentWorldModel(nn.Module):
         latent_channels: C of the video tokenizer (paper 64).
         patch_size: p, latent positions per token side (1: one token per latent position).
         dim, depth, heads, mlp_ratio: transformer (paper 22 layers, ≈ 8.4B parameters).
-        metadata_fields, text_dim, agent_categories, condition_dropout: see WorldConditioner.
+        metadata_fields, text_dim, agent_categories, condition_dropout, agent_raster: see WorldConditioner.
         checkpointing: activation checkpointing of the blocks.
     """
 
@@ -47,12 +47,12 @@ class LatentWorldModel(nn.Module):
     def __init__(self, latent_channels: int = 64, patch_size: int = 1, dim: int = 512, depth: int = 8, heads: int = 8,
                  mlp_ratio: float = 4.0, metadata_fields: Mapping[str, int] | None = None, text_dim: int = 0,
                  agent_categories: int = 8, condition_dropout: Mapping[str, float] | None = None,
-                 checkpointing: bool = False):
+                 checkpointing: bool = False, agent_raster: bool = False):
         super().__init__()
         self.latent_channels, self.patch, self.dim = latent_channels, patch_size, dim
         self.patch_in = nn.Linear(latent_channels * patch_size**2, dim)
         self.conditioner = WorldConditioner(dim, metadata_fields or {}, text_dim, agent_categories,
-                                            condition_dropout)
+                                            condition_dropout, agent_raster)
         self.blocks = nn.ModuleList(AdaLNSpaceTimeBlock(dim, heads, dim, mlp_ratio) for _ in range(depth))
         self.norm_out = nn.LayerNorm(dim, elementwise_affine=False)
         self.modulation_out = nn.Sequential(nn.SiLU(), nn.Linear(dim, 2 * dim))
@@ -71,7 +71,10 @@ class LatentWorldModel(nn.Module):
         for block in self.blocks:
             nn.init.zeros_(block.modulation[-1].weight)
             nn.init.zeros_(block.modulation[-1].bias)
-        for layer in (self.modulation_out[-1], self.patch_out):
+        zeroed = [self.modulation_out[-1], self.patch_out]
+        if self.conditioner.agent_raster is not None:  # agents start with no effect, as through the cross-attention
+            zeroed.append(self.conditioner.agent_raster)
+        for layer in zeroed:
             nn.init.zeros_(layer.weight)
             nn.init.zeros_(layer.bias)
 
@@ -90,15 +93,20 @@ class LatentWorldModel(nn.Module):
         if cond.actions is not None and cond.actions.shape != (b, t, 2):
             raise ValueError(f"conditions.actions: expected (b, t, 2) = ({b}, {t}, 2), got {tuple(cond.actions.shape)}")
 
-    def embed(self, x: torch.Tensor, cond: WorldConditions) -> torch.Tensor:
-        """Latents (b, v, t, C, h, w) → tokens (b, t, n, d) with position, camera and time embeddings."""
+    def embed(self, x: torch.Tensor, cond: WorldConditions, keep: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """Latents (b, v, t, C, h, w) → tokens (b, t, n, d) with position, camera and time embeddings (and the
+        agents painted on the grid, when the conditioner does so and `keep` keeps them)."""
         b, v, t, _, h, w = x.shape
         p = self.patch
         tokens = self.patch_in(rearrange(x, "b v t c (h p) (w q) -> b t v (h w) (p q c)", p=p, q=p))
         space = sincos_2d(h // p, w // p, self.dim, x.device).to(tokens.dtype)
         camera = self.conditioner.camera_embedding(cond)[:, None, :, None]  # (b, 1, v, 1, d)
         time = self.conditioner.time_embedding(cond, t, x.device)[:, :, None, None]  # (b, t, 1, 1, d)
-        return rearrange(tokens + space + camera + time, "b t v n d -> b t (v n) d")
+        tokens = tokens + space + camera + time
+        painted = self.conditioner.grid_agents(cond, (h // p, w // p), keep)
+        if painted is not None:
+            tokens = tokens + rearrange(painted, "b t v h w d -> b t v (h w) d")
+        return rearrange(tokens, "b t v n d -> b t (v n) d")
 
     def forward(self, x: torch.Tensor, tau: torch.Tensor, cond: WorldConditions,
                 positions: torch.Tensor | None = None) -> torch.Tensor:
@@ -106,10 +114,10 @@ class LatentWorldModel(nn.Module):
         the n = v·(h/p)·(w/p) token positions, only those tokens are computed: → (b, t, k, C·p²)."""
         self.check(x, tau, cond)
         b, v, t, _, h, w = x.shape
-        tokens = self.embed(x, cond)
+        keep = self.conditioner.keep_masks(b, x.device)
+        tokens = self.embed(x, cond, keep)
         if positions is not None:
             tokens = tokens[:, :, positions]
-        keep = self.conditioner.keep_masks(b, x.device)
         c = self.conditioner.adaln(tau, cond, keep)
         context, mask = self.conditioner.context(cond, b, t, keep, x.device)
         for block in self.blocks:

@@ -1,0 +1,120 @@
+"""Action adherence of the GAIA-2 latent world model, measured as GAIA-1's controllability table measures it
+(gaia_app/tasks/controllability.py; docs/latent_world_model.md, "Evaluation").
+
+Legend: N scenes, C commands, f = model.steps · temporal frames (front camera), t0 = context_steps · temporal.
+
+- Probe: GAIA-1's inverse-dynamics probe, trained on the front camera of `model.evaluate.probe_clips` clips of the
+  world `probe_seed` rendered with the rig's front camera at the rig's rate, weather and time of day uniform, and
+  `probe_driven_share` of them leaving their policy for a random open-loop command (frames whose motion is not the
+  policy's, as the commanded futures are).
+- For each held-out scene and each command of `model.evaluate.commands` (speed, curvature presets from the scene's
+  speed at frame t0 − 1), on frames t0 … f − 1:
+    ceiling   = the scene re-simulated by the synthetic world with the commanded actions (every camera rendered,
+                the probe reads the front one; as in GAIA-1's ceiling, an open-loop ego has no lead car to follow, so
+                'follow' scenes lose theirs);
+    tokenized = the ceiling encoded and decoded by the tokenizer (a diagnostic);
+    model     = the world model continuing the scene's t0 context frames under the commanded actions;
+    floor     = the same continuation with the action condition dropped (same noise as the model's futures);
+    reference = the real continuation under the scene's own policy, scored against the command.
+- Scores (tasks/controllability.error_row): the contrast errors of speed (accelerate vs brake) and curvature (left vs
+  right) and the MAE, 95 % intervals over scenes; the target model ≤ floor − ½ (floor − ceiling) and the probe
+  check ceiling ≤ ½ floor and ≤ ½ reference (tasks/controllability.action_checks).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+from tqdm.auto import tqdm
+
+from gaia_app.data.clip import Clip
+from gaia_app.data.latent_cache import LatentClip
+from gaia_app.data.synthetic import SyntheticClipDataset
+from gaia_app.data.synthetic.generate import SyntheticSample
+from gaia_app.data.synthetic.scenario import Scenario
+from gaia_app.data.transforms import to_float
+from gaia_app.eval.controllability import contrast_pairs, probe_clips, train_probes
+from gaia_app.models.probes import InverseDynamicsProbe
+from gaia_app.pipelines.gaia2 import Gaia2Pipeline, with_labels
+from gaia_app.tasks.controllability import CONTRASTS, UNIFORM_MIX, action_checks, action_rows_markdown, commanded_actions, error_row
+
+ROWS = {"ceiling": "ceiling (re-simulated with the commands)", "tokenized": "tokenized ceiling (diagnostic)",
+        "model": "model, commanded actions", "floor": "floor (actions dropped)",
+        "reference": "reference (real continuation)"}
+
+
+def rig_world(cfg: DictConfig, seed: int, count: int, frames: int, **overrides: Any) -> SyntheticClipDataset:
+    """Clips 0..count-1 of the synthetic world `seed` with the rig of `cfg.data` at its rate, `frames` long."""
+    make = instantiate(cfg.data.source, _partial_=True)  # overrides pass as objects (a Scenario is no config)
+    return make(**{"num_clips": count, "seed": seed, "clip_len": frames, **overrides})
+
+
+def train_action_probe(cfg: DictConfig, frames: int) -> tuple[InverseDynamicsProbe, dict[str, float]]:
+    """The inverse-dynamics probe of the module docstring, and its fit (first/last loss)."""
+    e = cfg.model.evaluate
+    world = rig_world(cfg, e.probe_seed, e.probe_clips, frames, cameras=[cfg.data.source.cameras[0]],
+                      driven_share=e.probe_driven_share, **UNIFORM_MIX)
+    clips = [world[i] for i in tqdm(range(e.probe_clips), desc="action probe clips")]
+    dynamics, _, fit = train_probes(probe_clips(clips, clips[0].fps, frames), e.probe_steps, seed=cfg.seed)
+    return dynamics, fit
+
+
+def resimulated(cfg: DictConfig, index: int, actions: np.ndarray) -> Clip:
+    """Scene `index` of the world `context.seed` (every camera of the rig) driven open-loop by per-frame `actions` (f, 2)."""
+    world = rig_world(cfg, cfg.context.seed, index + 1, len(actions), scenario=Scenario(ego_actions=actions))
+    return world[index]
+
+
+def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
+                 probe: InverseDynamicsProbe, generator: torch.Generator) -> dict[str, Any]:
+    """Rows, targets and probe checks of the action-adherence table (module docstring)."""
+    g = cfg.model
+    first, frames = g.context_steps * pipeline.temporal, g.steps * pipeline.temporal
+    rate = float(scenes[0][0].clip.fps)
+    contexts = probe_clips([sample.clip for sample, _ in scenes], rate, frames)
+    commands = [tuple(cmd) for cmd in g.evaluate.commands]
+    commanded = commanded_actions(contexts, first, frames - first, rate, commands)  # (C·N, f, 2) command-major
+    pairs = contrast_pairs(commanded[:, first:-1].unflatten(0, (len(commands), -1)))  # fails before any rollout
+    n = len(scenes)
+    noise = [int(torch.randint(2**31, (), generator=generator)) for _ in scenes]  # one per scene, shared by commands
+    videos: dict[str, list[torch.Tensor]] = {name: [] for name in ROWS}
+    for k in tqdm(range(len(commanded)), desc="action adherence"):
+        i = k % n
+        _, clip = scenes[i]
+        actions = commanded[k].numpy()
+        ceiling = resimulated(cfg, i, actions.astype(np.float64))
+        videos["ceiling"].append(to_float(torch.from_numpy(ceiling.frames[0])))
+        videos["tokenized"].append(pipeline.decode(pipeline.window(pipeline.encode(ceiling), 0, g.steps)[0])[0, 0].cpu())
+        target = with_labels(clip, first, actions[first:])
+        context, _ = pipeline.window(target, 0, g.context_steps)
+        _, cond = pipeline.window(target, 0, g.steps)
+        videos["model"].append(continuation(pipeline, context, cond, g.steps - g.context_steps, noise[i]))
+        if k < n:  # the floor ignores the command: one continuation per scene, scored against every command
+            videos["floor"].append(continuation(pipeline, context, cond.without("action"), g.steps - g.context_steps, noise[i]))
+    videos["floor"] = videos["floor"] * len(commands)
+    videos["reference"] = list(contexts.frames) * len(commands)
+    rows = {name: error_row(probe, torch.stack(video), commanded, first + 1, len(commands)) for name, video in videos.items()}
+    contrasted = {metric: ["/".join(commands[high]), "/".join(commands[low])] for metric, (high, low) in zip(CONTRASTS, pairs)}
+    return {"scenes": n, "commands": [list(cmd) for cmd in commands], "context_frames": first,
+            "scored_steps": frames - first - 1, "rows": rows, "contrasts": contrasted, "checks": action_checks(rows)}
+
+
+def continuation(pipeline: Gaia2Pipeline, context: torch.Tensor, cond: Any, new_steps: int, seed: int) -> torch.Tensor:
+    """The front camera's frames (f, 3, H, W) of the context steps continued by `new_steps` generated ones."""
+    x = pipeline.world.rollout(context, [cond], new_steps, torch.Generator(context.device).manual_seed(seed))
+    return pipeline.decode(x)[0, 0].cpu()
+
+
+def markdown(actions: dict[str, Any]) -> list[str]:
+    """The action-adherence table's lines."""
+    speed, curvature = (" vs ".join(actions["contrasts"][m]) for m in CONTRASTS)
+    return [f"Action adherence (front camera, {actions['scenes']} held-out scenes × {len(actions['commands'])} commands "
+             f"({', '.join('/'.join(c) for c in actions['commands'])}), {actions['context_frames']} context frames, "
+             f"{actions['scored_steps']} scored steps each; ± 95 % interval over scenes. Contrast error: |probed "
+             f"difference − commanded difference| of the horizon-mean speed ({speed}) and curvature ({curvature}) of "
+             "two futures of one scene; MAE: mean |probed − commanded| (diagnostic)", "",
+             *action_rows_markdown(actions, ROWS)]
