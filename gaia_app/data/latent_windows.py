@@ -42,10 +42,16 @@ class LatentWindows(Dataset):
         return len(self.clips)
 
     def __getitem__(self, index: int) -> dict[str, Any]:
-        clip = self.clips[index]
-        last = clip.mean.shape[1] - self.steps
-        start = int(torch.randint(0, last + 1, ()).item()) if self.random_window and last > 0 else 0
-        return latent_window(clip, start, self.steps, self.metadata)
+        return random_latent_window(self.clips[index], self.steps, self.metadata, self.random_window)
+
+
+def random_latent_window(clip: LatentClip, steps: int, metadata: MetadataEncoder, random_window: bool) -> dict[str, Any]:
+    """A window of `steps` latent steps of `clip` at a random start (random_window) or at its start."""
+    last = clip.mean.shape[1] - steps
+    if last < 0:
+        raise ClipError(f"latent clip '{clip.clip_id}' has {clip.mean.shape[1]} latent steps, fewer than steps={steps}")
+    start = int(torch.randint(0, last + 1, ()).item()) if random_window and last > 0 else 0
+    return latent_window(clip, start, steps, metadata)
 
 
 def latent_window(clip: LatentClip, start: int, steps: int, metadata: MetadataEncoder) -> dict[str, Any]:

@@ -22,7 +22,6 @@ from typing import Any
 
 import torch
 from einops import rearrange, repeat
-from torch import nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule, v_target

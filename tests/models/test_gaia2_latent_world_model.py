@@ -155,7 +155,7 @@ def test_cell_coverage_is_the_share_of_each_cell_under_the_box() -> None:
 
 
 def test_agent_raster_paints_agents_where_their_boxes_fall_and_only_there() -> None:
-    net, (x, tau) = model(agent_raster=True), latents()
+    net, (x, _) = model(agent_raster=True), latents()
     near, far = conditions(), conditions()
     far.agents = agents(3, [[15.0, 1.0, 0.8], [-40.0, 0.0, 0.8]])  # the second agent moves behind the rig
     keep = net.conditioner.keep_masks(1, x.device)

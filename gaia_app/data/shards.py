@@ -1,0 +1,380 @@
+"""Streaming readers for WebDataset shards written by `python -m gaia_app.data.shard` (docs/data.md, "Sharded
+streaming"): `data=video_folder_shards`, `data=token_cache_shards`, `data=latent_cache_shards`.
+
+Shards come from a local folder (its shards.json), `http(s)://` URLs or `pipe:` commands (e.g.
+`pipe:aws s3 cp s3://bucket/train-000000.tar -`), opened by WebDataset (`webdataset.tarfile_to_samples`).
+
+Epoch semantics (tested in tests/data/test_shards.py and tests/test_shards_ddp.py):
+- Each epoch the shard list is shuffled with (seed, epoch), then split by rank (`shards[rank::world]`) and by loader
+  worker (`[worker::workers]`): every shard, so every sample, is read exactly once per epoch across ranks and
+  workers. Ranks may get different numbers of samples (up to one shard's worth); under DDP set `epoch_batches` so
+  every rank stops after the same number of batches (what is left of that epoch is not seen).
+- Inside a worker: samples are decoded by the folder readers' own code, filtered by balanced acceptance (a sample is
+  kept with probability weight / max weight, the weights of gaia_app/data/sampling.py computed from the split's
+  feature table; GAIA-1 §3), cut into training items and mixed by a shuffle buffer of `shuffle_buffer` items, all
+  with generators seeded by (seed, epoch, rank, worker); batches are formed in the worker.
+- Resuming: the loader's state (epoch and batches taken from each worker) is saved in Lightning checkpoints; a resumed
+  run replays that epoch's stream and skips the batches already taken, so nothing is repeated or skipped (on rank 0
+  exactly; another rank whose workers ended at other points is off by at most one shard).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+import tempfile
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, IterableDataset, get_worker_info
+
+from gaia_app.data.clip import ClipError
+from gaia_app.data.shard_format import INDEX, decode_name
+from gaia_app.data.sampling import balancing_weights
+
+log = logging.getLogger(__name__)
+REMOTE = ("http://", "https://", "pipe:", "s3://", "gs://")
+
+
+def shard_urls(location: str, split: str) -> tuple[list[str], dict[str, Any] | None]:
+    """The shards of `split` and the index that lists them: a local folder (its shards.json) or a brace pattern /
+    list of URLs (e.g. `pipe:curl -s https://host/train-{000000..000031}.tar`), whose index is read from beside them
+    when it is local and absent otherwise."""
+    from braceexpand import braceexpand
+
+    path = Path(location)
+    if not location.startswith(REMOTE) and path.is_dir():
+        index_path = path / INDEX
+        if not index_path.is_file():
+            raise FileNotFoundError(f"{path}: no {INDEX} (write shards with python -m gaia_app.data.shard)")
+        index = json.loads(index_path.read_text())
+        if split not in index["splits"]:
+            raise ClipError(f"{index_path}: no '{split}' split (has {sorted(index['splits'])})")
+        return [str(path / s["name"]) for s in index["splits"][split]["shards"]], index
+    urls = [u for part in location.split("::") for u in braceexpand(part)]
+    missing = [u for u in urls if not u.startswith(REMOTE) and not Path(u).is_file()]
+    if missing:
+        raise FileNotFoundError(f"data.{split}_shards: {missing[:3]} not found")
+    return urls, None
+
+
+def split_shards(urls: Sequence[str], epoch: int, seed: int, shuffle: bool, rank: int, world: int, worker: int,
+                 workers: int) -> list[str]:
+    """This rank's and worker's shards of the epoch (module docstring)."""
+    order = np.random.default_rng([seed, epoch]).permutation(len(urls)) if shuffle else np.arange(len(urls))
+    return [urls[i] for i in order[rank::world][worker::workers]]
+
+
+def unpack(sample: dict[str, Any], folder: Path) -> tuple[str, dict[str, Any]]:
+    """Write a WebDataset sample's files into `folder` under their original names; returns its key and features."""
+    key, features = decode_name(sample["__key__"]), {}
+    for name, value in sample.items():
+        if name.startswith("__"):
+            continue
+        if name == "features.json":
+            features = json.loads(value)
+            continue
+        target = folder / decode_name(name)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(value)
+    return key, features
+
+
+def scratch_folder() -> Path:
+    """A fresh temporary folder for unpacked samples (in memory under /dev/shm when the machine has it)."""
+    shm = Path("/dev/shm")
+    return Path(tempfile.mkdtemp(prefix="gaia-shard-", dir=shm if shm.is_dir() else None))
+
+
+class ShardStream(IterableDataset):
+    """Batches from shards (module docstring).
+
+    Args:
+        urls: the split's shards. decode: (key, unpacked folder) → training items (a list, possibly empty).
+        collate: list of items → batch. batch_size: items per batch (the last of a worker may be smaller).
+        shuffle: shuffle shards and items (training). shuffle_buffer: items in the shuffle buffer.
+        weights: per-row acceptance weights (balanced sampling) or None. seed: base seed.
+    """
+
+    def __init__(self, urls: Sequence[str], decode: Callable[[str, Path], list[Any]], collate: Callable[[list], Any],
+                 batch_size: int, shuffle: bool = True, shuffle_buffer: int = 256, weights: np.ndarray | None = None,
+                 seed: int = 0):
+        self.urls, self.decode, self.collate = list(urls), decode, collate
+        self.batch_size, self.shuffle, self.shuffle_buffer = batch_size, shuffle, shuffle_buffer
+        self.weights, self.seed = weights, seed
+        self.epoch, self.rank, self.world = 0, 0, 1
+        self.skip: list[int] = []  # batches to skip per worker (resuming)
+
+    def items(self, worker: int, workers: int) -> Iterator[Any]:
+        """This worker's decoded, accepted training items, in stream order."""
+        import webdataset as wds
+
+        rng = np.random.default_rng([self.seed, self.epoch, self.rank, worker, 1])
+        mine = split_shards(self.urls, self.epoch, self.seed, self.shuffle, self.rank, self.world, worker, workers)
+        folder = scratch_folder()
+        try:
+            for sample in wds.tarfile_to_samples()(iter([{"url": u} for u in mine])):
+                key, features = unpack(sample, folder)
+                keep = self.weights is None or rng.random() < self.weights[int(features["row"])]
+                if keep:
+                    yield from self.decode(key, folder)
+                for child in folder.iterdir():
+                    shutil.rmtree(child) if child.is_dir() else child.unlink()
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+
+    def shuffled(self, items: Iterator[Any], worker: int) -> Iterator[Any]:
+        """Items mixed by a buffer of `shuffle_buffer` (each new item swaps with a random buffered one)."""
+        if not self.shuffle or self.shuffle_buffer <= 1:
+            yield from items
+            return
+        rng = np.random.default_rng([self.seed, self.epoch, self.rank, worker, 2])
+        buffer: list[Any] = []
+        for item in items:
+            if len(buffer) < self.shuffle_buffer:
+                buffer.append(item)
+                continue
+            j = int(rng.integers(len(buffer)))
+            yield buffer[j]
+            buffer[j] = item
+        rng.shuffle(buffer)
+        yield from buffer
+
+    def __iter__(self) -> Iterator[tuple[int, Any]]:
+        info = get_worker_info()
+        worker, workers = (info.id, info.num_workers) if info else (0, 1)
+        torch.manual_seed(int(np.random.default_rng([self.seed, self.epoch, self.rank, worker, 3]).integers(2**62)))
+        skip = self.skip[worker] if worker < len(self.skip) else 0
+        batch: list[Any] = []
+        taken = 0
+        for item in self.shuffled(self.items(worker, workers), worker):
+            batch.append(item)
+            if len(batch) == self.batch_size:
+                taken += 1
+                if taken > skip:
+                    yield worker, self.collate(batch)
+                batch = []
+        if batch and taken >= skip:
+            yield worker, self.collate(batch)
+
+
+class ShardLoader(DataLoader):
+    """A DataLoader over a ShardStream whose state (epoch, batches taken per worker) Lightning saves in checkpoints
+    and restores on resume; `epoch_batches` caps the batches of an epoch (equal lengths across DDP ranks)."""
+
+    def __init__(self, stream: ShardStream, num_workers: int = 0, epoch_batches: int | None = None):
+        super().__init__(stream, batch_size=None, num_workers=num_workers, persistent_workers=False)
+        self.stream, self.epoch_batches = stream, epoch_batches
+        self.epoch, self.taken, self.resume = 0, [0] * max(1, num_workers), None
+
+    def __iter__(self) -> Iterator[Any]:
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            self.stream.rank, self.stream.world = torch.distributed.get_rank(), torch.distributed.get_world_size()
+        self.stream.epoch = self.epoch
+        self.stream.skip, self.taken = (list(self.resume), list(self.resume)) if self.resume else ([], [0] * len(self.taken))
+        self.resume = None
+        count = sum(self.taken)
+        for worker, batch in super().__iter__():
+            if self.epoch_batches is not None and count >= self.epoch_batches:
+                break
+            self.taken[worker] += 1
+            count += 1
+            yield batch
+        self.epoch += 1
+        self.taken = [0] * len(self.taken)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"epoch": self.epoch, "taken": list(self.taken)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if len(state["taken"]) != len(self.taken):
+            raise ValueError(f"resuming a sharded loader saved with {len(state['taken'])} workers with "
+                             f"data.num_workers={len(self.taken)}: keep the worker count to resume mid-epoch")
+        self.epoch, self.resume = int(state["epoch"]), list(state["taken"])
+
+
+def acceptance(location: str, index: dict[str, Any] | None, split: str, balance: dict[str, Any] | None) -> np.ndarray | None:
+    """Per-row acceptance weights of the split from its feature table (GAIA-1 §3), or None without balancing."""
+    if not balance:
+        return None
+    if index is None:
+        raise ValueError("data.balance on shards needs the shard folder's shards.json and features (give data.path "
+                         "as the local or mounted folder)")
+    table = np.load(Path(location) / index["splits"][split]["features"])
+    features = dict(balance["features"])
+    missing = sorted(set(features) - set(table.files))
+    if missing:
+        raise ValueError(f"data.balance.features {missing}: not in the shards' feature table (has {sorted(table.files)})")
+    return balancing_weights({name: table[name] for name in features}, features, balance["exponent"])
+
+
+class ShardDataModule(L.LightningDataModule, ABC):
+    """Common part of the shard DataModules.
+
+    Args:
+        path: the shard folder (or URL pattern(s) joined by `::`, train and val as `<pattern>` with {split} in it).
+        batch_size, num_workers: loader settings. shuffle_buffer: items mixed per worker.
+        balance: None or {"features": {name: bins}, "exponent": float}. seed: shard order, buffers and acceptance.
+        epoch_batches: batches per epoch and rank (None: the whole stream).
+    """
+
+    def __init__(self, path: str, batch_size: int = 8, num_workers: int = 0, shuffle_buffer: int = 256,
+                 balance: dict[str, Any] | None = None, seed: int = 0, epoch_batches: int | None = None):
+        super().__init__()
+        self.path, self.batch_size, self.num_workers = str(path), batch_size, num_workers
+        self.shuffle_buffer, self.balance, self.seed, self.epoch_batches = shuffle_buffer, balance, seed, epoch_batches
+        self.loaders: dict[str, ShardLoader] = {}
+
+    @abstractmethod
+    def decoder(self, train: bool) -> Callable[[str, Path], list[Any]]:
+        """A picklable (key, folder with the sample's files) → its training items (validation: `train` False)."""
+
+    @abstractmethod
+    def collate(self) -> Callable[[list], Any]:
+        """A picklable function batching a list of items."""
+
+    def urls(self, split: str) -> tuple[list[str], dict[str, Any] | None]:
+        return shard_urls(self.path.replace("{split}", split), split)
+
+    def loader(self, split: str) -> ShardLoader:
+        if split not in self.loaders:
+            urls, index = self.urls(split)
+            train = split == "train"
+            weights = acceptance(self.path, index, split, self.balance) if train else None
+            stream = ShardStream(urls, self.decoder(train), self.collate(), self.batch_size, shuffle=train,
+                                 shuffle_buffer=self.shuffle_buffer, weights=weights, seed=self.seed)
+            self.loaders[split] = ShardLoader(stream, self.num_workers, self.epoch_batches if train else None)
+        return self.loaders[split]
+
+    def train_dataloader(self) -> ShardLoader:
+        return self.loader("train")
+
+    def val_dataloader(self) -> ShardLoader:
+        return self.loader("val")
+
+
+
+
+@dataclass
+class TokenDecoder:
+    """A token segment → every window of `seq_len` steps at `stride` (TokenCacheDataModule's items); none when shorter."""
+
+    seq_len: int
+    stride: int
+    frame_stride: int
+
+    def __call__(self, key: str, folder: Path) -> list[Any]:
+        from gaia_app.data.token_cache import TokenWindows, load_segment
+
+        segment = load_segment(folder / "tokens.npy", self.frame_stride)
+        segment.name = key
+        if len(segment.tokens) < self.seq_len:
+            return []
+        windows = TokenWindows([segment], [(0, 0, len(segment.tokens))], self.seq_len, self.stride)
+        return [windows[i] for i in range(len(windows))]
+
+
+class TokenShardDataModule(ShardDataModule):
+    """`data=token_cache_shards`: token windows as TokenCacheDataModule's (gaia_app/data/token_cache.py), every window
+    of each segment (stride `stride` in training, `seq_len` in validation); segments shorter than a window give none.
+    """
+
+    def __init__(self, path: str, seq_len: int = 16, stride: int = 1, frame_stride: int = 1, **kwargs: Any):
+        super().__init__(path, **kwargs)
+        self.seq_len, self.stride, self.frame_stride = seq_len, stride, frame_stride
+
+    def decoder(self, train: bool) -> TokenDecoder:
+        return TokenDecoder(self.seq_len, self.stride if train else self.seq_len, self.frame_stride)
+
+    def collate(self) -> Callable[[list], Any]:
+        from gaia_app.data.collate import collate_token_windows
+
+        return collate_token_windows
+
+
+@dataclass
+class LatentDecoder:
+    """A latent clip → one window of `steps` latent steps (LatentCacheDataModule's item)."""
+
+    steps: int
+    metadata_fields: list[str]
+    random_window: bool
+
+    def __call__(self, key: str, folder: Path) -> list[Any]:
+        from gaia_app.data.latent_cache import read_latent_clip
+        from gaia_app.data.latent_windows import random_latent_window
+        from gaia_app.data.metadata import MetadataEncoder
+
+        clip = read_latent_clip(folder)
+        clip.clip_id = key
+        return [random_latent_window(clip, self.steps, MetadataEncoder(self.metadata_fields), self.random_window)]
+
+
+class LatentShardDataModule(ShardDataModule):
+    """`data=latent_cache_shards`: latent windows as LatentCacheDataModule's (gaia_app/data/latent_windows.py), one
+    per clip and epoch (a random start in training, the first steps in validation)."""
+
+    def __init__(self, path: str, steps: int = 4, metadata_fields: Sequence[str] = (), **kwargs: Any):
+        super().__init__(path, **kwargs)
+        self.steps, self.metadata_fields = steps, list(metadata_fields)
+
+    def decoder(self, train: bool) -> LatentDecoder:
+        return LatentDecoder(self.steps, self.metadata_fields, train)
+
+    def collate(self) -> Callable[[list], Any]:
+        from gaia_app.data.latent_windows import collate_latent_windows
+
+        return collate_latent_windows
+
+
+@dataclass
+class ClipDecoder:
+    """A clip folder → one window of `clip_len` steps at `fps` (ClipDataModule's item); none when too short (logged)."""
+
+    clip_len: int
+    fps: float | None
+    cameras: list[str] | None
+    height: int
+    width: int
+    resize_mode: str
+    random_window: bool
+
+    def __call__(self, key: str, folder: Path) -> list[Any]:
+        from gaia_app.data.clip_folder import read_clip
+        from gaia_app.data.datasets import ClipsDataset
+
+        clip = read_clip(folder, self.cameras)
+        clip.clip_id = key
+        windows = ClipsDataset([clip], self.height, self.width, self.clip_len, self.fps, self.cameras,
+                               self.resize_mode, random_window=self.random_window)
+        try:
+            return [windows[0]]
+        except ClipError as error:  # too short for one window
+            log.warning("shards: %s", error)
+            return []
+
+
+class ClipShardDataModule(ShardDataModule):
+    """`data=video_folder_shards`: video windows as ClipDataModule's (gaia_app/data/datasets.ClipsDataset), one per
+    clip and epoch. A clip with fewer than clip_len frames at `fps` gives none and is logged."""
+
+    def __init__(self, path: str, clip_len: int = 8, fps: float | None = None, cameras: Sequence[str] | None = None,
+                 height: int = 64, width: int = 112, resize_mode: str = "crop", **kwargs: Any):
+        super().__init__(path, **kwargs)
+        self.clip_len, self.fps, self.cameras = clip_len, fps, None if cameras is None else list(cameras)
+        self.height, self.width, self.resize_mode = height, width, resize_mode
+
+    def decoder(self, train: bool) -> ClipDecoder:
+        return ClipDecoder(self.clip_len, self.fps, self.cameras, self.height, self.width, self.resize_mode, train)
+
+    def collate(self) -> Callable[[list], Any]:
+        from gaia_app.data.collate import collate_clips
+
+        return collate_clips
