@@ -55,7 +55,7 @@ def clip_root(tmp_path_factory) -> Path:
 
 
 def data_overrides(option: str, clip_root: Path) -> list[str]:
-    if option.startswith("video_folder"):
+    if option.startswith("video_folder") and not option.endswith("_shards"):
         return [f"data.source.root={clip_root}"]
     if option == "commavq" and not (CONF_DIR.parent.parent / "shared" / "data" / "commavq" / "tokens.npy").exists():
         pytest.skip("commavq tokens absent (../shared/data)")

@@ -20,12 +20,14 @@ Epoch semantics (tested in tests/data/test_shards.py and tests/test_shards_ddp.p
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import shutil
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import tempfile
+import weakref
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -72,38 +74,48 @@ def split_shards(urls: Sequence[str], epoch: int, seed: int, shuffle: bool, rank
     return [urls[i] for i in order[rank::world][worker::workers]]
 
 
-def unpack(sample: dict[str, Any], folder: Path) -> tuple[str, dict[str, Any]]:
-    """Write a WebDataset sample's files into `folder` under their original names; returns its key and features."""
-    key, features = decode_name(sample["__key__"]), {}
-    for name, value in sample.items():
-        if name.startswith("__"):
-            continue
-        if name == "features.json":
-            features = json.loads(value)
-            continue
-        target = folder / decode_name(name)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        target.write_bytes(value)
-    return key, features
+def sample_files(sample: dict[str, Any]) -> tuple[str, dict[str, bytes], dict[str, Any]]:
+    """A WebDataset sample → its key, its files {original relative name: bytes} and its features."""
+    files = {decode_name(name): value for name, value in sample.items() if not name.startswith("__")}
+    features = json.loads(files.pop("features.json", b"{}"))
+    return decode_name(sample["__key__"]), files, features
 
 
-def scratch_folder() -> Path:
-    """A fresh temporary folder for unpacked samples (in memory under /dev/shm when the machine has it)."""
-    shm = Path("/dev/shm")
-    return Path(tempfile.mkdtemp(prefix="gaia-shard-", dir=shm if shm.is_dir() else None))
+class Unpacked:
+    """A scratch folder holding one sample's files at a time, for readers that take a folder (clip folders, latent
+    clips); in memory under /dev/shm when the machine has it. Created per process on first use."""
+
+    def __init__(self) -> None:
+        self.folder: Path | None = None
+
+    def __call__(self, files: dict[str, bytes]) -> Path:
+        if self.folder is None:
+            shm = Path("/dev/shm")
+            self.folder = Path(tempfile.mkdtemp(prefix="gaia-shard-", dir=shm if shm.is_dir() else None))
+            weakref.finalize(self, shutil.rmtree, self.folder, True)
+        for child in self.folder.iterdir():
+            shutil.rmtree(child) if child.is_dir() else child.unlink()
+        for name, data in files.items():
+            target = self.folder / name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(data)
+        return self.folder
+
+    def __getstate__(self) -> dict[str, Any]:  # each worker process makes its own folder
+        return {"folder": None}
 
 
 class ShardStream(IterableDataset):
     """Batches from shards (module docstring).
 
     Args:
-        urls: the split's shards. decode: (key, unpacked folder) → training items (a list, possibly empty).
+        urls: the split's shards. decode: (key, files {name: bytes}) → training items (a list, possibly empty).
         collate: list of items → batch. batch_size: items per batch (the last of a worker may be smaller).
         shuffle: shuffle shards and items (training). shuffle_buffer: items in the shuffle buffer.
         weights: per-row acceptance weights (balanced sampling) or None. seed: base seed.
     """
 
-    def __init__(self, urls: Sequence[str], decode: Callable[[str, Path], list[Any]], collate: Callable[[list], Any],
+    def __init__(self, urls: Sequence[str], decode: Callable[[str, dict[str, bytes]], list[Any]], collate: Callable[[list], Any],
                  batch_size: int, shuffle: bool = True, shuffle_buffer: int = 256, weights: np.ndarray | None = None,
                  seed: int = 0):
         self.urls, self.decode, self.collate = list(urls), decode, collate
@@ -118,17 +130,14 @@ class ShardStream(IterableDataset):
 
         rng = np.random.default_rng([self.seed, self.epoch, self.rank, worker, 1])
         mine = split_shards(self.urls, self.epoch, self.seed, self.shuffle, self.rank, self.world, worker, workers)
-        folder = scratch_folder()
-        try:
-            for sample in wds.tarfile_to_samples()(iter([{"url": u} for u in mine])):
-                key, features = unpack(sample, folder)
-                keep = self.weights is None or rng.random() < self.weights[int(features["row"])]
-                if keep:
-                    yield from self.decode(key, folder)
-                for child in folder.iterdir():
-                    shutil.rmtree(child) if child.is_dir() else child.unlink()
-        finally:
-            shutil.rmtree(folder, ignore_errors=True)
+        if not mine:
+            log.warning("shards: rank %d worker %d has none of the %d shards (%d ranks × %d workers read them): write "
+                        "smaller shards (--shard-size) or use fewer workers", self.rank, worker, len(self.urls),
+                        self.world, workers)
+        for sample in wds.tarfile_to_samples()(iter([{"url": u} for u in mine])):
+            key, files, features = sample_files(sample)
+            if self.weights is None or rng.random() < self.weights[int(features["row"])]:
+                yield from self.decode(key, files)
 
     def shuffled(self, items: Iterator[Any], worker: int) -> Iterator[Any]:
         """Items mixed by a buffer of `shuffle_buffer` (each new item swaps with a random buffered one)."""
@@ -200,14 +209,16 @@ class ShardLoader(DataLoader):
         self.epoch, self.resume = int(state["epoch"]), list(state["taken"])
 
 
-def acceptance(location: str, index: dict[str, Any] | None, split: str, balance: dict[str, Any] | None) -> np.ndarray | None:
-    """Per-row acceptance weights of the split from its feature table (GAIA-1 §3), or None without balancing."""
+def acceptance(folder: str | None, split: str, balance: dict[str, Any] | None) -> np.ndarray | None:
+    """Per-row acceptance weights of the split from its feature table (GAIA-1 §3), or None without balancing.
+    folder: a local folder with the shards' shards.json and features-<split>.npz."""
     if not balance:
         return None
-    if index is None:
-        raise ValueError("data.balance on shards needs the shard folder's shards.json and features (give data.path "
-                         "as the local or mounted folder)")
-    table = np.load(Path(location) / index["splits"][split]["features"])
+    if folder is None:
+        raise ValueError("data.balance on remote shards needs their shards.json and features-<split>.npz locally: "
+                         "set data.index_dir to a folder holding them")
+    index = json.loads((Path(folder) / INDEX).read_text())
+    table = np.load(Path(folder) / index["splits"][split]["features"])
     features = dict(balance["features"])
     missing = sorted(set(features) - set(table.files))
     if missing:
@@ -223,18 +234,22 @@ class ShardDataModule(L.LightningDataModule, ABC):
         batch_size, num_workers: loader settings. shuffle_buffer: items mixed per worker.
         balance: None or {"features": {name: bins}, "exponent": float}. seed: shard order, buffers and acceptance.
         epoch_batches: batches per epoch and rank (None: the whole stream).
+        index_dir: a local folder with shards.json and the feature tables, for balancing remote shards (a local
+            shard folder is its own).
     """
 
     def __init__(self, path: str, batch_size: int = 8, num_workers: int = 0, shuffle_buffer: int = 256,
-                 balance: dict[str, Any] | None = None, seed: int = 0, epoch_batches: int | None = None):
+                 balance: dict[str, Any] | None = None, seed: int = 0, epoch_batches: int | None = None,
+                 index_dir: str | None = None):
         super().__init__()
+        self.index_dir = index_dir
         self.path, self.batch_size, self.num_workers = str(path), batch_size, num_workers
         self.shuffle_buffer, self.balance, self.seed, self.epoch_batches = shuffle_buffer, balance, seed, epoch_batches
         self.loaders: dict[str, ShardLoader] = {}
 
     @abstractmethod
-    def decoder(self, train: bool) -> Callable[[str, Path], list[Any]]:
-        """A picklable (key, folder with the sample's files) → its training items (validation: `train` False)."""
+    def decoder(self, train: bool) -> Callable[[str, dict[str, bytes]], list[Any]]:
+        """A picklable (key, the sample's files {name: bytes}) → its training items (validation: `train` False)."""
 
     @abstractmethod
     def collate(self) -> Callable[[list], Any]:
@@ -247,7 +262,7 @@ class ShardDataModule(L.LightningDataModule, ABC):
         if split not in self.loaders:
             urls, index = self.urls(split)
             train = split == "train"
-            weights = acceptance(self.path, index, split, self.balance) if train else None
+            weights = acceptance(self.index_dir or (self.path if index else None), split, self.balance) if train else None
             stream = ShardStream(urls, self.decoder(train), self.collate(), self.batch_size, shuffle=train,
                                  shuffle_buffer=self.shuffle_buffer, weights=weights, seed=self.seed)
             self.loaders[split] = ShardLoader(stream, self.num_workers, self.epoch_batches if train else None)
@@ -270,11 +285,11 @@ class TokenDecoder:
     stride: int
     frame_stride: int
 
-    def __call__(self, key: str, folder: Path) -> list[Any]:
-        from gaia_app.data.token_cache import TokenWindows, load_segment
+    def __call__(self, key: str, files: dict[str, bytes]) -> list[Any]:
+        from gaia_app.data.token_cache import TokenWindows, read_segment
 
-        segment = load_segment(folder / "tokens.npy", self.frame_stride)
-        segment.name = key
+        sidecars = {name.removeprefix("tokens"): io.BytesIO(data) for name, data in files.items() if name != "tokens.npy"}
+        segment = read_segment(key, io.BytesIO(files["tokens.npy"]), sidecars, self.frame_stride, f"shard sample {key}.npy")
         if len(segment.tokens) < self.seq_len:
             return []
         windows = TokenWindows([segment], [(0, 0, len(segment.tokens))], self.seq_len, self.stride)
@@ -306,13 +321,14 @@ class LatentDecoder:
     steps: int
     metadata_fields: list[str]
     random_window: bool
+    unpacked: Unpacked = field(default_factory=Unpacked)
 
-    def __call__(self, key: str, folder: Path) -> list[Any]:
+    def __call__(self, key: str, files: dict[str, bytes]) -> list[Any]:
         from gaia_app.data.latent_cache import read_latent_clip
         from gaia_app.data.latent_windows import random_latent_window
         from gaia_app.data.metadata import MetadataEncoder
 
-        clip = read_latent_clip(folder)
+        clip = read_latent_clip(self.unpacked(files))
         clip.clip_id = key
         return [random_latent_window(clip, self.steps, MetadataEncoder(self.metadata_fields), self.random_window)]
 
@@ -345,12 +361,13 @@ class ClipDecoder:
     width: int
     resize_mode: str
     random_window: bool
+    unpacked: Unpacked = field(default_factory=Unpacked)
 
-    def __call__(self, key: str, folder: Path) -> list[Any]:
+    def __call__(self, key: str, files: dict[str, bytes]) -> list[Any]:
         from gaia_app.data.clip_folder import read_clip
         from gaia_app.data.datasets import ClipsDataset
 
-        clip = read_clip(folder, self.cameras)
+        clip = read_clip(self.unpacked(files), self.cameras)
         clip.clip_id = key
         windows = ClipsDataset([clip], self.height, self.width, self.clip_len, self.fps, self.cameras,
                                self.resize_mode, random_window=self.random_window)

@@ -49,26 +49,37 @@ def sidecar(path: Path, suffix: str) -> Path:
 
 def load_segment(path: Path, frame_stride: int = 1) -> TokenSegment:
     """Read one token file (and its sidecars), keep every `frame_stride`-th step."""
-    tokens = np.load(path)
+    found = {suffix: sidecar(path, suffix) for suffix in SIDECARS if sidecar(path, suffix).exists()}
+    return read_segment(path.stem, path, found, frame_stride, str(path))
+
+
+def read_segment(name: str, tokens_file: Any, sidecars: dict[str, Any], frame_stride: int, where: str) -> TokenSegment:
+    """A segment from its token file and its sidecars {suffix: file}, each a path or a file object (e.g. a shard
+    member in memory); `where` names the token file in errors."""
+    tokens = np.load(tokens_file)
     if tokens.ndim not in (2, 3) or tokens.dtype.kind not in "iu":
-        raise ClipError(f"{path}: expected integer tokens (T, n) or (T, h, w), got {tokens.dtype} {tokens.shape}")
+        raise ClipError(f"{where}: expected integer tokens (T, n) or (T, h, w), got {tokens.dtype} {tokens.shape}")
     tokens = tokens.reshape(len(tokens), -1).astype(np.int64)[::frame_stride]
-    actions = _load_sidecar(sidecar(path, ".actions.npy"), np.float32, (len(tokens), 2), frame_stride)
-    timestamps = _load_sidecar(sidecar(path, ".timestamps.npy"), np.float64, (len(tokens),), frame_stride)
-    text_path = sidecar(path, ".text.json")
-    text = json.loads(text_path.read_text())[::frame_stride] if text_path.exists() else None
-    if text is not None and len(text) != len(tokens):
-        raise ClipError(f"{text_path}: {len(text)} captions, expected {len(tokens)} after stride {frame_stride}")
-    return TokenSegment(path.stem, tokens, actions, timestamps, text)
+    stem = where.removesuffix(".npy")
+    actions = _load_sidecar(sidecars.get(".actions.npy"), stem + ".actions.npy", np.float32, (len(tokens), 2), frame_stride)
+    timestamps = _load_sidecar(sidecars.get(".timestamps.npy"), stem + ".timestamps.npy", np.float64, (len(tokens),),
+                               frame_stride)
+    text = None
+    if ".text.json" in sidecars:
+        source = sidecars[".text.json"]
+        text = json.loads(source.read_text() if isinstance(source, Path) else source.read())[::frame_stride]
+        if len(text) != len(tokens):
+            raise ClipError(f"{stem}.text.json: {len(text)} captions, expected {len(tokens)} after stride {frame_stride}")
+    return TokenSegment(name, tokens, actions, timestamps, text)
 
 
-def _load_sidecar(path: Path, dtype: type, shape: tuple[int, ...], frame_stride: int) -> np.ndarray | None:
-    """A per-step array beside a token file, strided like the tokens; None when absent."""
-    if not path.exists():
+def _load_sidecar(source: Any, where: str, dtype: type, shape: tuple[int, ...], frame_stride: int) -> np.ndarray | None:
+    """A per-step array beside a token file (a path or file object), strided like the tokens; None when absent."""
+    if source is None:
         return None
-    array = np.load(path).astype(dtype)[::frame_stride]
+    array = np.load(source).astype(dtype)[::frame_stride]
     if array.shape != shape:
-        raise ClipError(f"{path}: shape {array.shape}, expected {shape} after stride {frame_stride}")
+        raise ClipError(f"{where}: shape {array.shape}, expected {shape} after stride {frame_stride}")
     return array
 
 

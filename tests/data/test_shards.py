@@ -217,3 +217,15 @@ def test_missing_index_and_split_are_named(tmp_path: Path, tokens) -> None:
         shard_urls(str(tokens[1]), "test")
     assert isinstance(token_module(tokens[1]).train_dataloader(), ShardLoader)
     torch.manual_seed(0)
+
+
+def test_balancing_remote_shards_needs_their_index(tokens, tmp_path: Path) -> None:
+    _, shards = tokens
+    names = sorted(p.name for p in shards.glob("train-*.tar"))
+    piped = "::".join(f"pipe:cat {shards / n}" for n in names)
+    balance = {"features": {"speed": 2}, "exponent": 1.0}
+    with pytest.raises(ValueError, match="data.index_dir"):
+        token_module(piped, balance=balance).train_dataloader()
+    assert list(token_module(piped, balance=balance, index_dir=str(shards)).train_dataloader())
+    with pytest.raises(ValueError, match=r"\['weather'\]: not in the shards' feature table"):
+        token_module(shards, balance={"features": {"weather": None}, "exponent": 1.0}).train_dataloader()
