@@ -146,11 +146,16 @@ class ShardStream(IterableDataset):
             return
         rng = np.random.default_rng([self.seed, self.epoch, self.rank, worker, 2])
         buffer: list[Any] = []
+        size = self.shuffle_buffer
+        picks = iter(())  # uniform positions in the full buffer, drawn a thousand at a time
         for item in items:
-            if len(buffer) < self.shuffle_buffer:
+            if len(buffer) < size:
                 buffer.append(item)
                 continue
-            j = int(rng.integers(len(buffer)))
+            j = next(picks, None)
+            if j is None:
+                picks = iter(rng.integers(size, size=1000).tolist())
+                j = next(picks)
             yield buffer[j]
             buffer[j] = item
         rng.shuffle(buffer)
@@ -174,12 +179,18 @@ class ShardStream(IterableDataset):
             yield worker, self.collate(batch)
 
 
+def as_batched(item: tuple[int, Any]) -> tuple[int, Any]:
+    """The workers batch already: no default_convert pass over every batch."""
+    return item
+
+
 class ShardLoader(DataLoader):
     """A DataLoader over a ShardStream whose state (epoch, batches taken per worker) Lightning saves in checkpoints
     and restores on resume; `epoch_batches` caps the batches of an epoch (equal lengths across DDP ranks)."""
 
     def __init__(self, stream: ShardStream, num_workers: int = 0, epoch_batches: int | None = None):
-        super().__init__(stream, batch_size=None, num_workers=num_workers, persistent_workers=False)
+        super().__init__(stream, batch_size=None, num_workers=num_workers, persistent_workers=False,
+                         collate_fn=as_batched)
         self.stream, self.epoch_batches = stream, epoch_batches
         self.epoch, self.taken, self.resume = 0, [0] * max(1, num_workers), None
 
@@ -279,21 +290,44 @@ class ShardDataModule(L.LightningDataModule, ABC):
 
 @dataclass
 class TokenDecoder:
-    """A token segment → every window of `seq_len` steps at `stride` (TokenCacheDataModule's items); none when shorter."""
+    """A token segment → a reference (segment, start) per window of `seq_len` steps at `stride`; none when shorter.
+    `collate_token_refs` cuts the windows of a batch at once."""
 
     seq_len: int
     stride: int
     frame_stride: int
 
     def __call__(self, key: str, files: dict[str, bytes]) -> list[Any]:
-        from gaia_app.data.token_cache import TokenWindows, read_segment
+        from gaia_app.data.token_cache import read_segment
 
         sidecars = {name.removeprefix("tokens"): io.BytesIO(data) for name, data in files.items() if name != "tokens.npy"}
         segment = read_segment(key, io.BytesIO(files["tokens.npy"]), sidecars, self.frame_stride, f"shard sample {key}.npy")
-        if len(segment.tokens) < self.seq_len:
-            return []
-        windows = TokenWindows([segment], [(0, 0, len(segment.tokens))], self.seq_len, self.stride)
-        return [windows[i] for i in range(len(windows))]
+        starts = range(0, len(segment.tokens) - self.seq_len + 1, self.stride)
+        return [(segment, start, self.seq_len) for start in starts]
+
+
+def collate_token_refs(refs: list[tuple[Any, int, int]]) -> dict[str, Any]:
+    """Window references (segment, start, length) → the batch `collate_token_windows` makes of the same windows
+    (TokenWindows items), cut with one numpy stack per field instead of a tensor per window."""
+    from gaia_app.data.token_cache import TokenSegment
+
+    segments: list[TokenSegment] = [segment for segment, _, _ in refs]
+    cut = lambda name: [getattr(seg, name)[start : start + n] for seg, start, n in refs]  # noqa: E731
+    batch: dict[str, Any] = {"tokens": torch.from_numpy(np.stack(cut("tokens")))}
+    for name in ("actions", "text", "timestamps"):
+        have = [getattr(seg, name) is not None for seg in segments]
+        if not any(have):
+            continue
+        if not all(have):
+            raise ClipError(f"token batch mixes windows with and without '{name}' ({sum(have)} of {len(refs)} have it)")
+        if name == "text":
+            batch["text"] = [list(window) for window in cut("text")]
+        elif name == "actions":
+            batch["actions"] = torch.from_numpy(np.stack(cut("actions")))
+        else:
+            times = np.stack(cut("timestamps"))
+            batch["timestamps"] = torch.from_numpy(times - times[:, :1]).float()
+    return dict(sorted(batch.items()))
 
 
 class TokenShardDataModule(ShardDataModule):
@@ -309,9 +343,7 @@ class TokenShardDataModule(ShardDataModule):
         return TokenDecoder(self.seq_len, self.stride if train else self.seq_len, self.frame_stride)
 
     def collate(self) -> Callable[[list], Any]:
-        from gaia_app.data.collate import collate_token_windows
-
-        return collate_token_windows
+        return collate_token_refs
 
 
 @dataclass

@@ -229,3 +229,21 @@ def test_balancing_remote_shards_needs_their_index(tokens, tmp_path: Path) -> No
     assert list(token_module(piped, balance=balance, index_dir=str(shards)).train_dataloader())
     with pytest.raises(ValueError, match=r"\['weather'\]: not in the shards' feature table"):
         token_module(shards, balance={"features": {"weather": None}, "exponent": 1.0}).train_dataloader()
+
+
+def test_window_references_collate_to_the_folder_loaders_batch(tokens) -> None:
+    from gaia_app.data.collate import collate_token_windows
+    from gaia_app.data.shards import collate_token_refs
+    from gaia_app.data.token_cache import TokenWindows
+
+    cache, _ = tokens
+    segments = [load_segment(p) for p in find_segments(cache)[:3]]
+    refs = [(segments[0], 4, SEQ), (segments[2], 0, SEQ), (segments[1], 12, SEQ)]
+    items = [TokenWindows([seg], [(0, 0, STEPS)], SEQ, 1)[start] for seg, start, _ in refs]
+    expected, got = collate_token_windows(items), collate_token_refs(refs)
+    assert list(got) == list(expected) and got["text"] == expected["text"]
+    for key in ("tokens", "actions", "timestamps"):
+        assert got[key].dtype == expected[key].dtype and torch.equal(got[key], expected[key])
+    segments[1].actions = None
+    with pytest.raises(Exception, match="mixes windows with and without 'actions'"):
+        collate_token_refs(refs)
