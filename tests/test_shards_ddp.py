@@ -57,7 +57,9 @@ def test_two_ranks_with_two_workers_each_read_every_sample_once(shards: Path, tm
 
 
 def test_train_py_trains_on_shards_with_ddp_and_resumes_the_stream(tmp_path: Path) -> None:
-    """One drifting segment cut into 6 segment files, sharded; 2 ranks × 2 steps, then a resume to 4 steps."""
+    """One drifting segment cut into 6 segment files, 4 of them for training, one per shard: each of 2 ranks reads 2
+    shards, 3 batches of 2 windows. The first run stops mid-epoch at step 2, the resumed one finishes the epoch with
+    the one batch it had not taken."""
     cache = tmp_path / "cache"
     tokens = (np.random.default_rng(0).integers(0, 16, size=12)[None] + np.arange(60)[:, None]) % 16
     actions = np.random.default_rng(1).normal(size=(60, 2)).astype(np.float32)
@@ -69,13 +71,15 @@ def test_train_py_trains_on_shards_with_ddp_and_resumes_the_stream(tmp_path: Pat
     run_dir = tmp_path / "run"
     args = [*world_model_args(tmp_path / "shards", tmp_path / "logs"), "trainer=ddp", "trainer.precision=32-true",
             "data=token_cache_shards", "data.seq_len=8",
-            "data.num_workers=1", "data.shuffle_buffer=4", "data.epoch_batches=2", "trainer.val_check_interval=2",
+            "data.num_workers=1", "data.shuffle_buffer=4", "data.epoch_batches=3", "trainer.val_check_interval=2",
             f"hydra.run.dir={run_dir}"]
     run_train([*args, "trainer.max_steps=2"])
     checkpoint = torch.load(run_dir / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
     state = checkpoint["loops"]["fit_loop"]["state_dict"]["combined_loader"]
-    assert state == [{"epoch": 1, "taken": [0]}]  # epoch_batches=2: the first epoch ended at step 2
-    run_train([*args, "trainer.max_steps=4", "ckpt_path=last"])
+    assert state == [{"epoch": 0, "taken": [2]}]  # stopped mid-epoch: 2 of its 3 batches taken
+    run_train([*args, "trainer.max_steps=3", "ckpt_path=last"])
     resumed = torch.load(run_dir / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
-    assert resumed["global_step"] == 4
-    assert resumed["loops"]["fit_loop"]["state_dict"]["combined_loader"] == [{"epoch": 2, "taken": [0]}]
+    assert resumed["global_step"] == 3
+    # the resumed loader skipped the 2 batches already taken: the epoch ended at step 3 (a loader restarted from the
+    # epoch's start would stand at 1 of 3 batches of epoch 0)
+    assert resumed["loops"]["fit_loop"]["state_dict"]["combined_loader"] == [{"epoch": 1, "taken": [0]}]

@@ -20,6 +20,7 @@ Epoch semantics (tested in tests/data/test_shards.py and tests/test_shards_ddp.p
 
 from __future__ import annotations
 
+import collections
 import io
 import json
 import logging
@@ -186,38 +187,64 @@ def as_batched(item: tuple[int, Any]) -> tuple[int, Any]:
 
 class ShardLoader(DataLoader):
     """A DataLoader over a ShardStream whose state (epoch, batches taken per worker) Lightning saves in checkpoints
-    and restores on resume; `epoch_batches` caps the batches of an epoch (equal lengths across DDP ranks)."""
+    and restores on resume; `epoch_batches` caps the batches of an epoch (equal lengths across DDP ranks).
+
+    Lightning fetches one batch ahead of the step that uses it, so under a trainer the state counts the batches
+    the training loop used (`mark_used`, called by ShardDataModule.on_before_batch_transfer), not those fetched: a
+    fetched batch that no step used is handed out again after a resume. Outside a trainer every batch handed out
+    counts.
+    """
 
     def __init__(self, stream: ShardStream, num_workers: int = 0, epoch_batches: int | None = None):
         super().__init__(stream, batch_size=None, num_workers=num_workers, persistent_workers=False,
                          collate_fn=as_batched)
         self.stream, self.epoch_batches = stream, epoch_batches
-        self.epoch, self.taken, self.resume = 0, [0] * max(1, num_workers), None
+        self.workers = max(1, num_workers)
+        self.epoch, self.resume = 0, None
+        self.handed: collections.deque[tuple[int, int]] = collections.deque()  # (epoch, worker) not yet used
+        self.sizes: dict[int, int] = {}  # batches in each finished epoch
+        self.tracking, self.used = False, (0, [0] * self.workers)  # the consumer's (epoch, taken per worker)
+        self.produced = (0, [0] * self.workers)  # the producer's
 
     def __iter__(self) -> Iterator[Any]:
         if torch.distributed.is_available() and torch.distributed.is_initialized():
             self.stream.rank, self.stream.world = torch.distributed.get_rank(), torch.distributed.get_world_size()
-        self.stream.epoch = self.epoch
-        self.stream.skip, self.taken = (list(self.resume), list(self.resume)) if self.resume else ([], [0] * len(self.taken))
-        self.resume = None
-        count = sum(self.taken)
+        epoch, start = self.epoch, list(self.resume) if self.resume else [0] * self.workers
+        self.stream.epoch, self.stream.skip, self.resume = epoch, list(start), None
+        self.produced = (epoch, list(start))
+        if self.used[0] < epoch or not self.handed:
+            self.used = (epoch, list(start))
         for worker, batch in super().__iter__():
-            if self.epoch_batches is not None and count >= self.epoch_batches:
+            if self.epoch_batches is not None and sum(self.produced[1]) >= self.epoch_batches:
                 break
-            self.taken[worker] += 1
-            count += 1
+            self.produced[1][worker] += 1
+            self.handed.append((epoch, worker))
             yield batch
-        self.epoch += 1
-        self.taken = [0] * len(self.taken)
+        self.sizes[epoch] = sum(self.produced[1])
+        self.epoch = epoch + 1
+
+    def mark_used(self) -> None:
+        """The training loop used the oldest batch handed out."""
+        self.tracking = True
+        if not self.handed:
+            return
+        epoch, worker = self.handed.popleft()
+        if epoch != self.used[0]:
+            self.used = (epoch, [0] * self.workers)
+        self.used[1][worker] += 1
 
     def state_dict(self) -> dict[str, Any]:
-        return {"epoch": self.epoch, "taken": list(self.taken)}
+        epoch, taken = self.used if self.tracking else self.produced
+        if self.sizes.get(epoch) == sum(taken):  # that epoch is over and fully used: the next one starts afresh
+            return {"epoch": epoch + 1, "taken": [0] * self.workers}
+        return {"epoch": epoch, "taken": list(taken)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        if len(state["taken"]) != len(self.taken):
+        if len(state["taken"]) != self.workers:
             raise ValueError(f"resuming a sharded loader saved with {len(state['taken'])} workers with "
-                             f"data.num_workers={len(self.taken)}: keep the worker count to resume mid-epoch")
+                             f"data.num_workers={self.workers}: keep the worker count to resume mid-epoch")
         self.epoch, self.resume = int(state["epoch"]), list(state["taken"])
+        self.used, self.handed = (self.epoch, list(self.resume)), collections.deque()
 
 
 def acceptance(folder: str | None, split: str, balance: dict[str, Any] | None) -> np.ndarray | None:
@@ -278,6 +305,13 @@ class ShardDataModule(L.LightningDataModule, ABC):
                                  shuffle_buffer=self.shuffle_buffer, weights=weights, seed=self.seed)
             self.loaders[split] = ShardLoader(stream, self.num_workers, self.epoch_batches if train else None)
         return self.loaders[split]
+
+    def on_before_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
+        """Called once per batch a step uses (after Lightning's one-batch prefetch): count it for the resume state."""
+        trainer = getattr(self, "trainer", None)
+        if trainer is not None and trainer.training and "train" in self.loaders:
+            self.loaders["train"].mark_used()
+        return batch
 
     def train_dataloader(self) -> ShardLoader:
         return self.loader("train")

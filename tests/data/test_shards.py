@@ -115,7 +115,7 @@ def test_a_resumed_loader_neither_repeats_nor_skips(tokens, workers: int) -> Non
     assert sorted(together) == sorted(full) and len(set(together)) == len(full)  # nothing repeated, nothing skipped
     if workers == 0:  # one stream: the very same order (with workers the loader restarts its round-robin at worker 0)
         assert together == full
-    assert resumed.state_dict() == {"epoch": 1, "taken": [0] * max(1, workers)}
+    assert resumed.state_dict() == {"epoch": 1, "taken": [0] * max(1, workers)}  # the epoch is over
 
 
 def test_resuming_with_another_worker_count_is_refused(tokens) -> None:
@@ -247,3 +247,17 @@ def test_window_references_collate_to_the_folder_loaders_batch(tokens) -> None:
     segments[1].actions = None
     with pytest.raises(Exception, match="mixes windows with and without 'actions'"):
         collate_token_refs(refs)
+
+
+def test_the_state_counts_batches_used_not_batches_fetched_ahead(tokens) -> None:
+    _, shards = tokens
+    full = window_ids(token_module(shards).train_dataloader())
+    loader = token_module(shards).train_dataloader()
+    batches = iter(loader)
+    fetched = [next(batches) for _ in range(4)]  # Lightning fetches one batch ahead of its step
+    for _ in range(3):
+        loader.mark_used()
+    assert loader.state_dict() == {"epoch": 0, "taken": [3]}
+    resumed = token_module(shards).train_dataloader()
+    resumed.load_state_dict(loader.state_dict())
+    assert window_ids(fetched[:3]) + window_ids(resumed) == full  # the batch fetched but unused comes again
