@@ -261,3 +261,26 @@ def test_the_state_counts_batches_used_not_batches_fetched_ahead(tokens) -> None
     resumed = token_module(shards).train_dataloader()
     resumed.load_state_dict(loader.state_dict())
     assert window_ids(fetched[:3]) + window_ids(resumed) == full  # the batch fetched but unused comes again
+
+
+def test_http_urls_stream_like_local_shards(tokens) -> None:
+    """Shards served over HTTP (WebDataset opens http(s):// through curl) give the same stream."""
+    import functools
+    import http.server
+    import shutil
+    import threading
+
+    if shutil.which("curl") is None:
+        pytest.skip("curl is not installed (WebDataset reads http:// through it)")
+    _, shards = tokens
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(shards))
+    handler.log_message = lambda *args: None
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        count = len(list(shards.glob("train-*.tar")))
+        url = f"http://127.0.0.1:{server.server_address[1]}/{{split}}-{{000000..{count - 1:06d}}}.tar"
+        streamed = window_ids(token_module(url).train_dataloader())
+    finally:
+        server.shutdown()
+    assert streamed == window_ids(token_module(shards).train_dataloader())
