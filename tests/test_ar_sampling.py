@@ -139,3 +139,51 @@ def test_nucleus_keeps_the_fewest_likely_tokens_that_reach_p() -> None:
     assert set(TokenPicker("top_p", p=1e-6)(logits, generator).tolist()) == {0}
     with pytest.raises(ValueError, match="0 < p ≤ 1"):
         TokenPicker("top_p", p=0.0)
+
+
+@pytest.fixture(scope="module")
+def rope_net() -> WorldModel:
+    torch.manual_seed(0)
+    return WorldModel(V, dim=32, depth=2, heads=4, kv_heads=2, frames=T, text_tokens=M, image_tokens=N, text_dim=E,
+                      temporal_encoding="rope").eval()
+
+
+def test_rotary_time_makes_logits_independent_of_where_the_window_starts(rope_net: WorldModel) -> None:
+    """The property the rolling cache rests on: a window embedded from step 0 or continued after dropped steps gives
+    the same hidden states."""
+    from gaia_app.nn.attention import KVCache
+
+    tokens = torch.randint(0, V, (1, 3, N), generator=torch.Generator().manual_seed(3))
+    cond, _ = conds(rope_net, 1, 3)
+    x = rope_net.embed(tokens, cond)
+    step = rope_net.step_len
+    alone = rope_net.decode(x[:, step:])  # steps 1, 2 as a window of their own
+    cache = KVCache()
+    rope_net.decode(x[:, :step], cache)  # step 0, then forgotten
+    cache.drop_front(step)
+    continued = rope_net.decode(x[:, step:], cache)
+    torch.testing.assert_close(continued, alone, atol=1e-5, rtol=1e-5)
+    learned = WorldModel(V, dim=32, depth=2, heads=4, kv_heads=2, frames=T, text_tokens=M, image_tokens=N, text_dim=E)
+    assert "temporal" in dict(learned.named_parameters()) and "temporal" not in dict(rope_net.named_parameters())
+    with pytest.raises(ValueError, match="temporal_encoding"):
+        WorldModel(V, dim=32, depth=2, heads=4, frames=T, text_tokens=M, image_tokens=N, text_dim=E,
+                   temporal_encoding="alibi")
+
+
+@pytest.mark.parametrize("guided", [False, True])
+def test_rolling_cache_slides_without_re_prefill_and_equals_full_recompute(rope_net: WorldModel, guided: bool) -> None:
+    context = torch.randint(0, V, (2, 2, N), generator=torch.Generator().manual_seed(1))
+    cond, uncond = conds(rope_net, 2, 2 + 3 * T)
+    guidance = ClassifierFreeGuidance(2.0, LinearSchedule()) if guided else None
+    kw = dict(uncond=uncond if guided else None, frames=3 * T, guidance=guidance)  # slides 3·T − 1 times
+    picker = TokenPicker("argmax")
+    calls = []
+    decode = rope_net.decode
+    rope_net.decode = lambda x, cache=None: calls.append(x.shape[1]) or decode(x, cache)  # positions per forward
+    try:
+        cached = AutoregressiveSampler(picker, use_cache=True)(rope_net, context, cond, **kw)
+    finally:
+        del rope_net.decode
+    full = AutoregressiveSampler(picker, use_cache=False)(rope_net, context, cond, **kw)
+    assert torch.equal(cached, full)
+    assert max(calls[1:]) <= M + 2 + 1  # after the first prefill no forward feeds more than one step's edge

@@ -6,7 +6,10 @@ Legend:
 
 One frame takes n forward passes, one per token. With the KV cache each pass feeds only the new
 positions; without it (`use_cache=False`, the reference for tests and benchmarks) each pass
-re-runs the whole window. Beyond T steps a sliding window keeps the last T - 1 frames as context.
+re-runs the whole window. Beyond T steps a sliding window keeps the last T - 1 frames as context: with learned
+absolute step embeddings (GAIA-1 §2.1) every slide re-embeds and re-prefills the window, since each cached key
+carries its old window index; with rotary step positions (`temporal_encoding=rope`, the net's `rolling_cache`) the
+oldest step is dropped from the cache and the slide costs what any other frame costs.
 """
 
 from __future__ import annotations
@@ -36,7 +39,9 @@ class StepConditions(Protocol):
 class TokenWorldModel(Protocol):
     """What the sampler needs of an autoregressive world model (gaia_app.models.gaia1.WorldModel has it): `frames`
     steps per context window, `m` text positions per step, embedding of tokens and conditions, the causal trunk
-    (optionally KV-cached) and the token head. The sampler depends on this, not on a concrete model (DESIGN.md §3)."""
+    (optionally KV-cached) and the token head. The sampler depends on this, not on a concrete model (DESIGN.md §3).
+    Optional: `rolling_cache` True (with `step_len`, positions per step) when time is relative, so a sliding window
+    drops the oldest step from the KV cache instead of re-embedding the window (gaia_app/nn/rope.py)."""
 
     frames: int
     m: int
@@ -148,6 +153,10 @@ class AutoregressiveSampler:
         for k in tqdm(range(frames), desc="world model", unit="frame", disable=not self.progress):
             t = t0 + k
             start = max(0, t - (net.frames - 1))  # sliding window beyond T steps
+            rolling = stream is not None and stream.cache is not None and getattr(net, "rolling_cache", False)
+            if start != window and rolling:  # relative time: drop the oldest step, keep every other cached key
+                stream.cache.drop_front(net.step_len)
+                window = start
             if start != window:
                 stream, window = WindowStream(net, self.use_cache), start
                 x = self.prefill(net, tokens, streams, start, t)

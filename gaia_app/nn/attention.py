@@ -12,6 +12,8 @@ import torch.nn.functional as F
 from einops import rearrange
 from torch import nn
 
+from gaia_app.nn.rope import rotate
+
 
 class KVCache:
     """Keys and values of the positions already decoded, one (k, v) pair per layer.
@@ -24,11 +26,25 @@ class KVCache:
     def __init__(self) -> None:
         self.keys: list[torch.Tensor] = []
         self.values: list[torch.Tensor] = []
+        self.offset = 0  # positions dropped from the front (`drop_front`): absolute position = offset + index
 
     @property
     def length(self) -> int:
         """Positions cached in the last layer (every layer, between forwards)."""
         return self.keys[-1].shape[2] if self.keys else 0
+
+    @property
+    def next_position(self) -> int:
+        """The absolute position of the next token, counting dropped positions."""
+        return self.offset + self.length
+
+    def drop_front(self, count: int) -> None:
+        """Forget the `count` oldest positions in every layer (a sliding window with relative positions)."""
+        if count > self.length:
+            raise ValueError(f"cannot drop {count} positions from a cache of {self.length}")
+        self.keys = [k[:, :, count:] for k in self.keys]
+        self.values = [v[:, :, count:] for v in self.values]
+        self.offset += count
 
     def past(self, layer: int) -> int:
         """Positions cached in `layer` before this forward appends to it."""
@@ -69,10 +85,14 @@ class CausalSelfAttention(nn.Module):
         self.to_out = nn.Linear(dim, dim, bias=False)
         self.dropout = dropout
 
-    def forward(self, x: torch.Tensor, cache: KVCache | None = None, layer: int = 0) -> torch.Tensor:
-        """x: (b, s, d) → (b, s, d); with a cache, x holds the positions after the cached ones."""
+    def forward(self, x: torch.Tensor, cache: KVCache | None = None, layer: int = 0,
+                rotary: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """x: (b, s, d) → (b, s, d); with a cache, x holds the positions after the cached ones. rotary: cos, sin
+        (s, e) of x's positions (gaia_app/nn/rope.py), applied to queries and keys before the keys are cached."""
         q = rearrange(self.to_q(x), "b s (h e) -> b h s e", h=self.heads)
         k, v = rearrange(self.to_kv(x), "b s (two g e) -> two b g s e", two=2, g=self.kv_heads)
+        if rotary is not None:
+            q, k = rotate(q, *rotary), rotate(k, *rotary)
         past = cache.past(layer) if cache is not None else 0
         if cache is not None:
             k, v = cache.update(layer, k, v)

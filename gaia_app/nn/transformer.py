@@ -13,6 +13,7 @@ from torch import nn
 from torch.utils.checkpoint import checkpoint
 
 from gaia_app.nn.attention import CausalSelfAttention, KVCache
+from gaia_app.nn.rope import StepRotary
 
 
 class FeedForward(nn.Module):
@@ -37,8 +38,9 @@ class TransformerBlock(nn.Module):
         self.norm2 = nn.LayerNorm(dim)
         self.mlp = FeedForward(dim, mlp_ratio, dropout)
 
-    def forward(self, x: torch.Tensor, cache: KVCache | None = None, layer: int = 0) -> torch.Tensor:
-        x = x + self.attn(self.norm1(x), cache, layer)
+    def forward(self, x: torch.Tensor, cache: KVCache | None = None, layer: int = 0,
+                rotary: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        x = x + self.attn(self.norm1(x), cache, layer, rotary)
         return x + self.mlp(self.norm2(x))
 
 
@@ -50,22 +52,27 @@ class CausalTransformer(nn.Module):
         kv_heads: key/value heads (None: = heads; fewer: grouped-query attention).
         mlp_ratio: MLP hidden width over d.
         checkpointing: recompute each block's activations in backward (training without a cache only).
+        rotary: rotary time-step positions for every attention layer (gaia_app/nn/rope.py), or None.
     """
 
     def __init__(self, dim: int, depth: int, heads: int, kv_heads: int | None = None, mlp_ratio: float = 4.0,
-                 dropout: float = 0.0, checkpointing: bool = False):
+                 dropout: float = 0.0, checkpointing: bool = False, rotary: StepRotary | None = None):
         super().__init__()
         self.blocks = nn.ModuleList(TransformerBlock(dim, heads, kv_heads, mlp_ratio, dropout) for _ in range(depth))
         self.norm = nn.LayerNorm(dim)
         self.checkpointing = checkpointing
+        self.rotary = rotary
 
     def forward(self, x: torch.Tensor, cache: KVCache | None = None) -> torch.Tensor:
         """x: (b, s, d) → (b, s, d). With a cache, x holds the positions after the cached ones."""
+        rotary = None
+        if self.rotary is not None:
+            rotary = self.rotary(cache.next_position if cache is not None else 0, x.shape[1], x.device)
         for i, block in enumerate(self.blocks):
             if self.checkpointing and self.training and cache is None:
-                x = checkpoint(block, x, use_reentrant=False)
+                x = checkpoint(block, x, None, i, rotary, use_reentrant=False)
             else:
-                x = block(x, cache, i)
+                x = block(x, cache, i, rotary)
         return self.norm(x)
 
     def initialize_weights(self) -> None:

@@ -20,9 +20,11 @@ from einops import rearrange, repeat
 from torch import nn
 
 from gaia_app.nn.attention import KVCache
+from gaia_app.nn.rope import StepRotary
 from gaia_app.nn.transformer import CausalTransformer, TransformerBlock
 
 STREAMS = ("text", "actions")
+TEMPORAL_ENCODINGS = ("learned", "rope")
 # conditioning modes drawn per training example (GAIA-1 §4.2: 20% / 40% / 40%, no both-conditions share)
 DEFAULT_DROP = {"unconditional": 0.2, "actions": 0.4, "text": 0.4, "both": 0.0}
 # (speed m/s, curvature 1/m) → (a − mean) / std before the linear projection. Raw curvature (~0.01 1/m) is
@@ -167,6 +169,10 @@ class WorldModel(nn.Module):
             paper; off in the paper preset). In GAIA-1 each action is one token that every image token has to
             find by attention; at CPU scale the model never learns to, and rollouts ignore their commands
             (docs/world_model.md measures both).
+        temporal_encoding: "learned" (GAIA-1 §2.1: one learned embedding per window step) or "rope" (rotary
+            positions over steps, gaia_app/nn/rope.py; not in the paper). With "rope" the attention sees only how
+            far apart two steps are, so a sampler slides its window by dropping the oldest step from the KV cache
+            instead of re-embedding the window (`rolling_cache`).
     """
 
     block_types = (TransformerBlock,)
@@ -177,10 +183,13 @@ class WorldModel(nn.Module):
                  cond_drop: Mapping[str, float] | None = None, checkpointing: bool = False,
                  tie_embeddings: bool = False, previous_frame_shortcut: bool = False,
                  action_norm: Mapping[str, Sequence[float]] | None = None, action_shortcut: bool = False,
-                 action_deltas: bool = False):
+                 action_deltas: bool = False, temporal_encoding: str = "learned"):
         super().__init__()
         if text_tokens < 1:
             raise ValueError("text_tokens must be ≥ 1: the last text token of step t predicts z_{t,1}")
+        if temporal_encoding not in TEMPORAL_ENCODINGS:
+            raise ValueError(f"temporal_encoding={temporal_encoding!r}: expected one of {TEMPORAL_ENCODINGS}")
+        self.temporal_encoding = temporal_encoding
         self.vocab_size, self.frames = vocab_size, frames
         self.m, self.n, self.l = text_tokens, image_tokens, action_tokens
         self.step_len = text_tokens + image_tokens + action_tokens
@@ -189,9 +198,11 @@ class WorldModel(nn.Module):
         self.conditioner = WorldModelConditioner(dim, text_dim, text_tokens, action_tokens, cond_drop, action_norm,
                                                  action_deltas)
         self.token_embedding = nn.Embedding(vocab_size, dim)
-        self.temporal = nn.Parameter(torch.zeros(frames, dim))  # shared by all tokens of a step
+        if temporal_encoding == "learned":
+            self.temporal = nn.Parameter(torch.zeros(frames, dim))  # shared by all tokens of a step
         self.spatial = nn.Parameter(torch.zeros(self.step_len, dim))  # position within a step
-        self.transformer = CausalTransformer(dim, depth, heads, kv_heads, mlp_ratio, dropout, checkpointing)
+        rotary = StepRotary(dim // heads, self.step_len) if temporal_encoding == "rope" else None
+        self.transformer = CausalTransformer(dim, depth, heads, kv_heads, mlp_ratio, dropout, checkpointing, rotary)
         self.head = nn.Linear(dim, vocab_size, bias=False)
         self.initialize_weights()
         if tie_embeddings:
@@ -200,8 +211,15 @@ class WorldModel(nn.Module):
     def initialize_weights(self) -> None:
         """GPT-2 init for the transformer and head, N(0, 0.02) for embeddings and positions."""
         self.transformer.initialize_weights()
-        for p in (self.token_embedding.weight, self.temporal, self.spatial, self.head.weight):
+        for p in (self.token_embedding.weight, self.spatial, self.head.weight):
             nn.init.normal_(p, std=0.02)
+        if self.temporal_encoding == "learned":
+            nn.init.normal_(self.temporal, std=0.02)
+
+    @property
+    def rolling_cache(self) -> bool:
+        """Whether a sampler may slide its window by dropping the oldest step from the KV cache (relative time)."""
+        return self.temporal_encoding == "rope"
 
     def embed(self, tokens: torch.Tensor, cond: Conditions, start: int = 0,
               previous: torch.Tensor | None = None, previous_actions: torch.Tensor | None = None) -> torch.Tensor:
@@ -216,7 +234,9 @@ class WorldModel(nn.Module):
         if start + t > self.frames:
             raise ValueError(f"steps {start}..{start + t - 1} exceed the context of T={self.frames} steps")
         x = torch.cat([cond.text, self.token_embedding(tokens), cond.actions], dim=2)  # (b, t, s, d)
-        x = x + self.temporal[start : start + t, None] + self.spatial
+        x = x + self.spatial
+        if self.temporal_encoding == "learned":  # with "rope" time enters the attention instead
+            x = x + self.temporal[start : start + t, None]
         if self.previous_frame_shortcut:
             x = x + self.shortcut(tokens, previous)
         if self.action_shortcut:

@@ -1,0 +1,44 @@
+"""Rotary position embedding over time steps (RoPE, Su et al. 2021) for interleaved per-step token sequences.
+
+Legend: b batch, h heads, s positions, e head width, L tokens per time step.
+
+Every position of one time step gets the same rotation, by its step index p // L: the attention score of two tokens
+then depends on how many steps apart they are, never on where the window starts. A KV cache can therefore drop the
+oldest step when a window slides and keep every other cached key as it is (GAIA-1's learned absolute temporal
+embeddings change all of them). Not in GAIA-1 (§2.1: learned factorised embeddings); an option for new models.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+class StepRotary(nn.Module):
+    """cos/sin tables (s, e) of the time step of each absolute position.
+
+    Args:
+        head_dim: e (even). step_len: L, tokens per time step. base: the frequency base (RoPE's 10 000).
+    """
+
+    def __init__(self, head_dim: int, step_len: int, base: float = 10_000.0):
+        super().__init__()
+        if head_dim % 2:
+            raise ValueError(f"rotary embeddings need an even head width, got {head_dim}")
+        self.step_len = step_len
+        inverse = base ** (-torch.arange(0, head_dim, 2, dtype=torch.float32) / head_dim)
+        self.register_buffer("inverse_frequency", inverse, persistent=False)
+
+    def forward(self, start: int, length: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+        """cos, sin (length, e) of positions start..start+length-1 (absolute, counting dropped ones)."""
+        steps = torch.div(torch.arange(start, start + length, device=device), self.step_len, rounding_mode="floor")
+        angles = steps[:, None].float() * self.inverse_frequency.to(device)[None]  # (s, e/2)
+        angles = torch.cat([angles, angles], dim=-1)
+        return angles.cos(), angles.sin()
+
+
+def rotate(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+    """Apply the rotation to queries or keys x (b, h, s, e) with cos, sin (s, e) (the rotate-half convention)."""
+    half = x.shape[-1] // 2
+    turned = torch.cat([-x[..., half:], x[..., :half]], dim=-1)
+    return (x * cos + turned * sin).to(x.dtype)
