@@ -104,7 +104,9 @@ class WindowStream:
 
     def __init__(self, net: TokenWorldModel, use_cache: bool):
         self.net = net
-        self.cache = KVCache() if use_cache else None
+        # a window's positions, preallocated: T steps plus the next step's text
+        capacity = net.frames * getattr(net, "step_len", 0) + net.m or None
+        self.cache = KVCache(capacity) if use_cache else None
         self.chunks: list[torch.Tensor] = []
 
     def feed(self, x: torch.Tensor) -> torch.Tensor:

@@ -19,46 +19,62 @@ class KVCache:
     """Keys and values of the positions already decoded, one (k, v) pair per layer.
 
     Each layer appends its new keys/values (b, g, s, e) during a forward; `length` is the number of
-    cached positions, i.e. the absolute position of the next token. Data only: decoding state lives
-    in this object, never in the network or the sampler.
+    cached positions. Data only: decoding state lives in this object, never in the network or the sampler.
+
+    capacity: positions to preallocate per layer (a static cache, as gpt-fast keeps one): new keys are written in
+    place and layers read views, so a token costs no copy of the cache. Without it (or beyond it) the cache grows by
+    concatenation. `drop_front` forgets the oldest positions (a sliding window with relative positions); `offset`
+    counts them, so `next_position` stays absolute.
     """
 
-    def __init__(self) -> None:
-        self.keys: list[torch.Tensor] = []
-        self.values: list[torch.Tensor] = []
-        self.offset = 0  # positions dropped from the front (`drop_front`): absolute position = offset + index
+    def __init__(self, capacity: int | None = None) -> None:
+        self.capacity = capacity
+        self.buffers: list[tuple[torch.Tensor, torch.Tensor]] = []
+        self.begin, self.end = [], []  # per layer: the live slice of its buffers
+        self.offset = 0
 
     @property
     def length(self) -> int:
         """Positions cached in the last layer (every layer, between forwards)."""
-        return self.keys[-1].shape[2] if self.keys else 0
+        return self.end[-1] - self.begin[-1] if self.buffers else 0
 
     @property
     def next_position(self) -> int:
         """The absolute position of the next token, counting dropped positions."""
         return self.offset + self.length
 
-    def drop_front(self, count: int) -> None:
-        """Forget the `count` oldest positions in every layer (a sliding window with relative positions)."""
-        if count > self.length:
-            raise ValueError(f"cannot drop {count} positions from a cache of {self.length}")
-        self.keys = [k[:, :, count:] for k in self.keys]
-        self.values = [v[:, :, count:] for v in self.values]
-        self.offset += count
-
     def past(self, layer: int) -> int:
         """Positions cached in `layer` before this forward appends to it."""
-        return self.keys[layer].shape[2] if layer < len(self.keys) else 0
+        return self.end[layer] - self.begin[layer] if layer < len(self.buffers) else 0
+
+    def drop_front(self, count: int) -> None:
+        """Forget the `count` oldest positions in every layer."""
+        if count > self.length:
+            raise ValueError(f"cannot drop {count} positions from a cache of {self.length}")
+        self.begin = [b + count for b in self.begin]
+        self.offset += count
 
     def update(self, layer: int, k: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Append (b, g, s, e) keys/values of `layer`; return all of them (b, g, p + s, e)."""
-        if layer == len(self.keys):
-            self.keys.append(k)
-            self.values.append(v)
-        else:
-            self.keys[layer] = torch.cat([self.keys[layer], k], dim=2)
-            self.values[layer] = torch.cat([self.values[layer], v], dim=2)
-        return self.keys[layer], self.values[layer]
+        s = k.shape[2]
+        if layer == len(self.buffers):
+            size = max(self.capacity or 0, s)
+            keys, values = k.new_empty(*k.shape[:2], size, k.shape[3]), v.new_empty(*v.shape[:2], size, v.shape[3])
+            self.buffers.append((keys, values))
+            self.begin.append(0)
+            self.end.append(0)
+        keys, values = self.buffers[layer]
+        begin, end = self.begin[layer], self.end[layer]
+        if end + s > keys.shape[2]:  # full: move the live part to the front, grow if it still does not fit
+            live = end - begin
+            size = max(keys.shape[2], live + s)
+            keys = torch.cat([keys[:, :, begin:end], keys.new_empty(*keys.shape[:2], size - live, keys.shape[3])], 2)
+            values = torch.cat([values[:, :, begin:end], values.new_empty(*values.shape[:2], size - live, values.shape[3])], 2)
+            self.buffers[layer], begin, end = (keys, values), 0, live
+        keys[:, :, end : end + s] = k
+        values[:, :, end : end + s] = v
+        self.begin[layer], self.end[layer] = begin, end + s
+        return keys[:, :, begin : end + s], values[:, :, begin : end + s]
 
 
 def causal_mask(queries: int, past: int, device: torch.device) -> torch.Tensor:
