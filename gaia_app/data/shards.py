@@ -195,10 +195,11 @@ class ShardLoader(DataLoader):
     counts.
     """
 
-    def __init__(self, stream: ShardStream, num_workers: int = 0, epoch_batches: int | None = None):
+    def __init__(self, stream: ShardStream, num_workers: int = 0, epoch_batches: int | None = None,
+                 finish: Callable[[Any], Any] | None = None):
         super().__init__(stream, batch_size=None, num_workers=num_workers, persistent_workers=False,
                          collate_fn=as_batched)
-        self.stream, self.epoch_batches = stream, epoch_batches
+        self.stream, self.epoch_batches, self.finish = stream, epoch_batches, finish
         self.workers = max(1, num_workers)
         self.epoch, self.resume = 0, None
         self.handed: collections.deque[tuple[int, int]] = collections.deque()  # (epoch, worker) not yet used
@@ -219,7 +220,7 @@ class ShardLoader(DataLoader):
                 break
             self.produced[1][worker] += 1
             self.handed.append((epoch, worker))
-            yield batch
+            yield batch if self.finish is None else self.finish(batch)
         self.sizes[epoch] = sum(self.produced[1])
         self.epoch = epoch + 1
 
@@ -303,8 +304,13 @@ class ShardDataModule(L.LightningDataModule, ABC):
             weights = acceptance(self.index_dir or (self.path if index else None), split, self.balance) if train else None
             stream = ShardStream(urls, self.decoder(train), self.collate(), self.batch_size, shuffle=train,
                                  shuffle_buffer=self.shuffle_buffer, weights=weights, seed=self.seed)
-            self.loaders[split] = ShardLoader(stream, self.num_workers, self.epoch_batches if train else None)
+            self.loaders[split] = ShardLoader(stream, self.num_workers, self.epoch_batches if train else None,
+                                              self.finish())
         return self.loaders[split]
+
+    def finish(self) -> Callable[[Any], Any] | None:
+        """What the main process does to each batch from the workers (None: nothing)."""
+        return None
 
     def on_before_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
         """Called once per batch a step uses (after Lightning's one-batch prefetch): count it for the resume state."""
@@ -335,7 +341,10 @@ class TokenDecoder:
         from gaia_app.data.token_cache import read_segment
 
         sidecars = {name.removeprefix("tokens"): io.BytesIO(data) for name, data in files.items() if name != "tokens.npy"}
-        segment = read_segment(key, io.BytesIO(files["tokens.npy"]), sidecars, self.frame_stride, f"shard sample {key}.npy")
+        # tokens stay in their stored type (int16 for codebooks that fit) until the main process (`widen_tokens`):
+        # a quarter of the bytes through the worker queues
+        segment = read_segment(key, io.BytesIO(files["tokens.npy"]), sidecars, self.frame_stride, f"shard sample {key}.npy",
+                               stored_dtype=True)
         starts = range(0, len(segment.tokens) - self.seq_len + 1, self.stride)
         return [(segment, start, self.seq_len) for start in starts]
 
@@ -378,6 +387,15 @@ class TokenShardDataModule(ShardDataModule):
 
     def collate(self) -> Callable[[list], Any]:
         return collate_token_refs
+
+    def finish(self) -> Callable[[Any], Any]:
+        return widen_tokens
+
+
+def widen_tokens(batch: dict[str, Any]) -> dict[str, Any]:
+    """Token ids as int64 (the batch contract), in the main process after the compact trip through the queues."""
+    batch["tokens"] = batch["tokens"].long()
+    return batch
 
 
 @dataclass

@@ -53,13 +53,16 @@ def load_segment(path: Path, frame_stride: int = 1) -> TokenSegment:
     return read_segment(path.stem, path, found, frame_stride, str(path))
 
 
-def read_segment(name: str, tokens_file: Any, sidecars: dict[str, Any], frame_stride: int, where: str) -> TokenSegment:
+def read_segment(name: str, tokens_file: Any, sidecars: dict[str, Any], frame_stride: int, where: str,
+                 stored_dtype: bool = False) -> TokenSegment:
     """A segment from its token file and its sidecars {suffix: file}, each a path or a file object (e.g. a shard
-    member in memory); `where` names the token file in errors."""
+    member in memory); `where` names the token file in errors. Tokens become int64 unless `stored_dtype` keeps the
+    file's (compact) integer type."""
     tokens = np.load(tokens_file)
     if tokens.ndim not in (2, 3) or tokens.dtype.kind not in "iu":
         raise ClipError(f"{where}: expected integer tokens (T, n) or (T, h, w), got {tokens.dtype} {tokens.shape}")
-    tokens = tokens.reshape(len(tokens), -1).astype(np.int64)[::frame_stride]
+    tokens = tokens.reshape(len(tokens), -1)[::frame_stride]
+    tokens = tokens if stored_dtype else tokens.astype(np.int64)
     stem = where.removesuffix(".npy")
     actions = _load_sidecar(sidecars.get(".actions.npy"), stem + ".actions.npy", np.float32, (len(tokens), 2), frame_stride)
     timestamps = _load_sidecar(sidecars.get(".timestamps.npy"), stem + ".timestamps.npy", np.float64, (len(tokens),),

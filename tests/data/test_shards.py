@@ -88,6 +88,7 @@ def test_an_epoch_streams_every_window_exactly_once(tokens, workers: int) -> Non
     assert len(streamed) == len(set(streamed))
     batch = train[0]
     assert batch["tokens"].shape[1:] == (SEQ, 24) and batch["actions"].shape[1:] == (SEQ, 2) and len(batch["text"][0]) == SEQ
+    assert batch["tokens"].dtype == torch.int64  # widened in the main process after the int16 trip
 
 
 def test_epochs_differ_in_order_and_replay_exactly_from_the_seed(tokens) -> None:
