@@ -7,7 +7,8 @@ For each trunk (random weights) this measures, after a full window of context:
   full        the full-recompute reference (re-runs the window at every token), only where --full says so
 as frames/s over `--frames` generated frames (every one slides the window), and the real-time ratio frames/s ÷ 6.25.
 Per-token speed: the sampler's time per image token in the rolling steady state next to a gpt-fast-style GPT
-(`StaticGPT`: the same trunk, a preallocated static KV cache written in place, one token per forward, greedy) over
+(`StaticGPT`: the same trunk and rotary positions, a preallocated static KV cache written in place, attention over the
+whole cache under a mask, one token per forward, greedy) over
 the same number of positions, in the same process.
 
 Trunks: `reference` = the shipped GAIA-1 reference world model's layout (d 128, 4 layers, 4/2 heads, 112 tokens per
@@ -35,6 +36,7 @@ from torch import nn
 
 from gaia_app.diffusion.ar_sampling import AutoregressiveSampler, TokenPicker
 from gaia_app.models.gaia1.world_model import WorldModel
+from gaia_app.nn.rope import rotate
 
 TRUNKS = {  # dim, depth, heads, kv_heads, image tokens, vocabulary, text tokens, window
     "reference": (128, 4, 4, 2, 112, 1024, 4, 12),
@@ -55,10 +57,12 @@ class StaticGPT(nn.Module):
         device = net.head.weight.device
         self.caches = [(torch.zeros(shape, device=device), torch.zeros(shape, device=device)) for _ in net.transformer.blocks]
 
-    def attend(self, block: nn.Module, x: torch.Tensor, layer: int, position: int) -> torch.Tensor:
+    def attend(self, block: nn.Module, x: torch.Tensor, layer: int, position: int, rotary: Any) -> torch.Tensor:
         attn = block.attn
         q = rearrange(attn.to_q(x), "b s (h e) -> b h s e", h=attn.heads)
         k, v = rearrange(attn.to_kv(x), "b s (two g e) -> two b g s e", two=2, g=attn.kv_heads)
+        if rotary is not None:  # gpt-fast rotates queries and keys too
+            q, k = rotate(q, *rotary), rotate(k, *rotary)
         keys, values = self.caches[layer]
         keys[:, :, position : position + 1] = k
         values[:, :, position : position + 1] = v
@@ -69,8 +73,10 @@ class StaticGPT(nn.Module):
     @torch.no_grad()
     def decode_one(self, token: torch.Tensor, position: int) -> torch.Tensor:
         x = self.net.token_embedding(token)[:, None] + self.net.spatial[position % self.net.step_len]
+        table = self.net.transformer.rotary
+        rotary = table(position, 1, x.device) if table is not None else None
         for layer, block in enumerate(self.net.transformer.blocks):
-            x = x + self.attend(block, block.norm1(x), layer, position)
+            x = x + self.attend(block, block.norm1(x), layer, position, rotary)
             x = x + block.mlp(block.norm2(x))
         return self.net.head(self.net.transformer.norm(x))[:, -1].argmax(-1)
 
