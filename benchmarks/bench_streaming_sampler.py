@@ -5,7 +5,8 @@ For each trunk (random weights) this measures, after a full window of context:
   rolling     temporal_encoding=rope: every frame past the window drops the oldest step from the KV cache
   re-prefill  temporal_encoding=learned (GAIA-1 §2.1): every slide re-embeds and re-prefills the window
   full        the full-recompute reference (re-runs the window at every token), only where --full says so
-as frames/s over `--frames` generated frames (every one slides the window), and the real-time ratio frames/s ÷ 6.25.
+as frames/s over `--frames` generated frames (every one slides the window; medians of `--repeats` alternated runs),
+and the real-time ratio frames/s ÷ 6.25.
 Per-token speed: the sampler's time per image token in the rolling steady state next to a gpt-fast-style GPT
 (`StaticGPT`: the same trunk and rotary positions, a preallocated static KV cache written in place, attention over the
 whole cache under a mask, one token per forward, greedy) over
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import time
 from pathlib import Path
 from typing import Any
@@ -141,6 +143,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--trunks", default="reference")
     parser.add_argument("--frames", type=int, default=4)
+    parser.add_argument("--repeats", type=int, default=3, help="medians over alternated repeats")
     parser.add_argument("--window-300m", type=int, default=3)
     parser.add_argument("--full", default="", help="trunks for which the full-recompute reference runs too")
     parser.add_argument("--device", default="cpu")
@@ -151,17 +154,22 @@ def main() -> None:
     for trunk in args.trunks.split(","):
         window = TRUNKS[trunk][7] or args.window_300m
         row: dict[str, Any] = {"window": window}
-        for name, encoding in (("rolling", "rope"), ("re-prefill", "learned")):
-            net = build(trunk, window, encoding, device)
-            fps = frames_per_second(net, args.frames, device)
-            row[name] = {"frames_per_s": fps, "real_time_ratio": fps / REAL_TIME_HZ}
+        nets = {"rolling": build(trunk, window, "rope", device), "re-prefill": build(trunk, window, "learned", device)}
+        runs: dict[str, list[float]] = {name: [] for name in nets}
+        for _ in range(args.repeats):  # alternated, so both see the same machine
+            for name, net in nets.items():
+                runs[name].append(frames_per_second(net, args.frames, device))
+        for name, rates in runs.items():
+            fps = statistics.median(rates)
+            row[name] = {"frames_per_s": fps, "real_time_ratio": fps / REAL_TIME_HZ, "runs": rates}
             print(f"{trunk} {name}: {fps:.3f} frames/s ({fps / REAL_TIME_HZ:.3f}× real time)")
         if trunk in args.full.split(","):
             fps = frames_per_second(build(trunk, window, "rope", device), 1, device, use_cache=False)
             row["full recompute"] = {"frames_per_s": fps, "real_time_ratio": fps / REAL_TIME_HZ}
             print(f"{trunk} full recompute: {fps:.4f} frames/s")
         row["rolling_over_re_prefill"] = row["rolling"]["frames_per_s"] / row["re-prefill"]["frames_per_s"]
-        row["per_token"] = per_token(build(trunk, window, "rope", device), device, TRUNKS[trunk][4])
+        tokens = [per_token(nets["rolling"], device, TRUNKS[trunk][4]) for _ in range(args.repeats)]
+        row["per_token"] = {key: statistics.median(t[key] for t in tokens) for key in tokens[0]}
         print(f"{trunk}: rolling / re-prefill {row['rolling_over_re_prefill']:.2f}×, per-token speed vs static-KV "
               f"GPT {row['per_token']['sampler_speed_over_static_gpt']:.2f}×")
         results[trunk] = row
