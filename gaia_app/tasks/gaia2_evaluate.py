@@ -39,7 +39,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from hydra.utils import instantiate
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
@@ -63,7 +62,7 @@ def rig_samples(cfg: DictConfig, seed: int, count: int, frames: int) -> list[Syn
     """`count` clips (with their simulation) of the synthetic world `seed` with the rig of `cfg.data`, `frames` long."""
     if "source" not in cfg.data or "cameras" not in cfg.data.source:
         raise ValueError("model=gaia2 mode=evaluate renders the rig of `data`: use data=synthetic_rig")
-    world = instantiate(cfg.data.source, num_clips=count, seed=seed, clip_len=frames)
+    world = gaia2_actions.rig_world(cfg, seed, count, frames)
     return [world.sample(i) for i in range(count)]
 
 

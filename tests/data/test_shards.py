@@ -217,7 +217,6 @@ def test_missing_index_and_split_are_named(tmp_path: Path, tokens) -> None:
     with pytest.raises(Exception, match="no 'test' split"):
         shard_urls(str(tokens[1]), "test")
     assert isinstance(token_module(tokens[1]).train_dataloader(), ShardLoader)
-    torch.manual_seed(0)
 
 
 def test_balancing_remote_shards_needs_their_index(tokens, tmp_path: Path) -> None:

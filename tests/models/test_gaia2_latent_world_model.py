@@ -160,7 +160,8 @@ def test_agent_raster_paints_agents_where_their_boxes_fall_and_only_there() -> N
     far.agents = agents(3, [[15.0, 1.0, 0.8], [-40.0, 0.0, 0.8]])  # the second agent moves behind the rig
     keep = net.conditioner.keep_masks(1, x.device)
     with torch.no_grad():
-        moved = (net.embed(x, near, keep) - net.embed(x, far, keep)).abs().amax(dim=(0, 1, 3))  # per token position
+        features = net.conditioner.agent_features
+        moved = (net.embed(x, near, keep, features(near)) - net.embed(x, far, keep, features(far))).abs().amax(dim=(0, 1, 3))
     gh, gw = 8 // net.patch, 14 // net.patch
     boxes, _, visible = project_boxes(near.agents, near.intrinsics, near.extrinsics, near.image_size)
     from gaia_app.models.gaia2.conditioning import cell_coverage

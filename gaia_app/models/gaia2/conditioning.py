@@ -35,6 +35,8 @@ from torch import nn
 from gaia_app.nn.spacetime import sincos_1d
 
 CONDITIONS = ("action", "agents", "metadata", "text")
+# agent tokens (b, t, v, N, d), their 2-D boxes (b, t, v, N, 4) and visibility (b, t, v, N) in every camera
+AgentFeatures = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
 
 @dataclass
@@ -220,13 +222,14 @@ class WorldConditioner(nn.Module):
             keep[name] = torch.rand(b, device=device) >= p if p > 0 else torch.ones(b, dtype=torch.bool, device=device)
         return keep
 
-    def context(self, cond: WorldConditions, b: int, t: int, keep: Mapping[str, torch.Tensor], device: torch.device
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-        """(b, t, m, d) tokens and (b, t, m) mask: null, agents (v·N), metadata (F), text."""
+    def context(self, cond: WorldConditions, b: int, t: int, keep: Mapping[str, torch.Tensor], device: torch.device,
+                agents: AgentFeatures | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(b, t, m, d) tokens and (b, t, m) mask: null, agents (v·N), metadata (F), text. agents: the
+        `agent_features` of cond when the caller has them already."""
         tokens = [self.null_token.expand(b, t, 1, self.dim)]
         masks = [torch.ones(b, t, 1, dtype=torch.bool, device=device)]
         if cond.active("agents"):
-            agent_tokens, visible = self.agent_tokens(cond)
+            agent_tokens, visible = self.agent_tokens(cond, agents)
             tokens.append(agent_tokens)
             masks.append(visible & keep["agents"][:, None, None])
         if cond.active("metadata"):
@@ -240,23 +243,22 @@ class WorldConditioner(nn.Module):
             masks.append(keep["text"][:, None, None].expand(b, t, 1))
         return torch.cat(tokens, dim=2), torch.cat(masks, dim=2)
 
-    def agent_tokens(self, cond: WorldConditions) -> tuple[torch.Tensor, torch.Tensor]:
+    def agent_tokens(self, cond: WorldConditions, agents: AgentFeatures | None = None
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Agents projected into each camera → tokens (b, t, v·N, d) and visibility (b, t, v·N)."""
-        tokens, _, visible = self.agent_features(cond)
+        tokens, _, visible = agents if agents is not None else self.agent_features(cond)
         return rearrange(tokens, "b t v n d -> b t (v n) d"), rearrange(visible, "b t v n -> b t (v n)")
 
-    def grid_agents(self, cond: WorldConditions, grid: tuple[int, int], keep: Mapping[str, torch.Tensor]
-                    ) -> torch.Tensor | None:
+    def grid_agents(self, agents: AgentFeatures, grid: tuple[int, int], keep: Mapping[str, torch.Tensor]
+                    ) -> torch.Tensor:
         """(b, t, v, gh, gw, d): per grid cell, Σ over agents of (share of the cell their box covers) · agent token,
-        projected; None without agent_raster or agents. grid (gh, gw) token cells per camera."""
-        if self.agent_raster is None or not cond.active("agents"):
-            return None
-        tokens, boxes, visible = self.agent_features(cond)
+        projected (agent_raster). agents: `agent_features`; grid (gh, gw) token cells per camera."""
+        tokens, boxes, visible = agents
         cover = cell_coverage(boxes, grid) * (visible & keep["agents"][:, None, None, None])[..., None, None]
         painted = torch.einsum("btvnhw,btvnd->btvhwd", cover.to(tokens.dtype), tokens)
         return self.agent_raster(painted)
 
-    def agent_features(self, cond: WorldConditions) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def agent_features(self, cond: WorldConditions) -> AgentFeatures:
         """Agent tokens (b, t, v, N, d), their boxes (b, t, v, N, 4) and visibility (b, t, v, N) in every camera."""
         agents = cond.agents
         boxes, depth, visible = project_boxes(agents, cond.intrinsics, cond.extrinsics, cond.image_size)

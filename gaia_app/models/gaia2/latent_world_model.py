@@ -27,7 +27,7 @@ from einops import rearrange
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
-from gaia_app.models.gaia2.conditioning import WorldConditioner, WorldConditions
+from gaia_app.models.gaia2.conditioning import AgentFeatures, WorldConditioner, WorldConditions
 from gaia_app.nn.spacetime import AdaLNSpaceTimeBlock, sincos_2d
 
 
@@ -93,9 +93,10 @@ class LatentWorldModel(nn.Module):
         if cond.actions is not None and cond.actions.shape != (b, t, 2):
             raise ValueError(f"conditions.actions: expected (b, t, 2) = ({b}, {t}, 2), got {tuple(cond.actions.shape)}")
 
-    def embed(self, x: torch.Tensor, cond: WorldConditions, keep: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """Latents (b, v, t, C, h, w) → tokens (b, t, n, d) with position, camera and time embeddings (and the
-        agents painted on the grid, when the conditioner does so and `keep` keeps them)."""
+    def embed(self, x: torch.Tensor, cond: WorldConditions, keep: Mapping[str, torch.Tensor],
+              agents: AgentFeatures | None = None) -> torch.Tensor:
+        """Latents (b, v, t, C, h, w) → tokens (b, t, n, d) with position, camera and time embeddings, and the
+        agents (the conditioner's `agent_features`) painted on the grid when it has agent_raster and `keep` keeps them."""
         b, v, t, _, h, w = x.shape
         p = self.patch
         tokens = self.patch_in(rearrange(x, "b v t c (h p) (w q) -> b t v (h w) (p q c)", p=p, q=p))
@@ -103,8 +104,8 @@ class LatentWorldModel(nn.Module):
         camera = self.conditioner.camera_embedding(cond)[:, None, :, None]  # (b, 1, v, 1, d)
         time = self.conditioner.time_embedding(cond, t, x.device)[:, :, None, None]  # (b, t, 1, 1, d)
         tokens = tokens + space + camera + time
-        painted = self.conditioner.grid_agents(cond, (h // p, w // p), keep)
-        if painted is not None:
+        if agents is not None and self.conditioner.agent_raster is not None:
+            painted = self.conditioner.grid_agents(agents, (h // p, w // p), keep)
             tokens = tokens + rearrange(painted, "b t v h w d -> b t v (h w) d")
         return rearrange(tokens, "b t v n d -> b t (v n) d")
 
@@ -115,11 +116,13 @@ class LatentWorldModel(nn.Module):
         self.check(x, tau, cond)
         b, v, t, _, h, w = x.shape
         keep = self.conditioner.keep_masks(b, x.device)
-        tokens = self.embed(x, cond, keep)
+        # agent tokens once per forward: both the grid painting and the cross-attention use them
+        agents = self.conditioner.agent_features(cond) if cond.active("agents") else None
+        tokens = self.embed(x, cond, keep, agents)
         if positions is not None:
             tokens = tokens[:, :, positions]
         c = self.conditioner.adaln(tau, cond, keep)
-        context, mask = self.conditioner.context(cond, b, t, keep, x.device)
+        context, mask = self.conditioner.context(cond, b, t, keep, x.device, agents)
         for block in self.blocks:
             if self.checkpointing and self.training:
                 tokens = checkpoint(block, tokens, c, context, mask, use_reentrant=False)
