@@ -187,3 +187,28 @@ def test_rolling_cache_slides_without_re_prefill_and_equals_full_recompute(rope_
     full = AutoregressiveSampler(picker, use_cache=False)(rope_net, context, cond, **kw)
     assert torch.equal(cached, full)
     assert max(calls[1:]) <= M + 2 + 1  # after the first prefill no forward feeds more than one step's edge
+
+
+@pytest.mark.parametrize("rope", [False, True])
+def test_a_session_extended_step_by_step_equals_the_whole_rollout(net: WorldModel, rope_net: WorldModel,
+                                                                   rope: bool) -> None:
+    """A closed loop's view: conditions appended one step at a time, frames sampled one per call, past several
+    window slides (re-prefill with learned time, a rolled cache with rotary time) → the tokens of one call."""
+    model = rope_net if rope else net
+    context = torch.randint(0, V, (2, 2, N), generator=torch.Generator().manual_seed(4))
+    cond, uncond = conds(model, 2, 2 + 2 * T)
+    guidance = ClassifierFreeGuidance(1.5, ConstantSchedule())
+    sampler = AutoregressiveSampler(TokenPicker("top_k", k=4))
+    whole = sampler(model, context, cond, uncond, 2 * T, guidance, torch.Generator().manual_seed(9))
+    session = sampler.session(model, context, cond.steps(0, 2), uncond.steps(0, 2), guidance,
+                              torch.Generator().manual_seed(9))
+    frames = []
+    for t in range(2, 2 + 2 * T):
+        session.extend(cond.steps(t, t + 1), uncond.steps(t, t + 1))
+        frames.append(session.next_frame())
+    assert torch.equal(torch.stack(frames, 1), whole[:, 2:])
+    assert session.steps == 2 + 2 * T and session.tokens.shape[1] == T  # only the window is kept
+    with pytest.raises(ValueError, match="no conditions for step"):
+        session.next_frame()
+    with pytest.raises(ValueError, match="guided: extend needs uncond"):
+        session.extend(cond.steps(0, 1))

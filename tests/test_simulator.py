@@ -41,18 +41,49 @@ def test_steps_are_deterministic_under_a_seed(pipeline: Gaia1Pipeline) -> None:
     assert not all(np.array_equal(a, b) for a, b in zip(first, other))
 
 
-def test_a_closed_loop_episode_reproduces_the_open_loop_rollout_of_its_actions(pipeline: Gaia1Pipeline) -> None:
-    """Context of T − 1 frames, so both run the window every step from the same positions: equal tokens."""
-    window = int(pipeline.world_model.frames)
-    env = DrivingSimulator(pipeline, context_frames=window - 1)
-    env.reset(seed=7)
+def closed_and_open(pipeline: Gaia1Pipeline, steps: int, seed: int = 7) -> tuple[torch.Tensor, torch.Tensor, list]:
+    """A closed-loop episode of `steps` steps from 4 context frames, the open-loop rollout of its actions, and the
+    positions of every world-model forward of the episode."""
+    env = DrivingSimulator(pipeline, context_frames=4)
+    env.reset(seed=seed)
     context = env.tokens.clone()
-    commands = [[9.0, 0.0], [11.0, 0.02], [12.0, 0.02], [10.0, -0.03]]
-    closed = torch.stack([torch.from_numpy(env.step(a)[4]["tokens"]) for a in commands])
+    rng = np.random.default_rng(seed)
+    commands = [[float(rng.uniform(6, 14)), float(rng.uniform(-0.03, 0.03))] for _ in range(steps)]
+    net, calls = pipeline.world_model, []
+    decode = net.decode
+    net.decode = lambda x, cache=None: calls.append(x.shape[1]) or decode(x, cache)
+    try:
+        closed = torch.stack([torch.from_numpy(env.step(a)[4]["tokens"]) for a in commands])
+    finally:
+        del net.decode
     actions = torch.from_numpy(np.stack(env.actions))[None]
-    generator = torch.Generator().manual_seed(7)
-    opened, _ = pipeline.sample_batch(context[None], len(commands), None, actions, None, 1, generator)
-    assert torch.equal(closed, opened[0, window - 1:].cpu())
+    opened, _ = pipeline.sample_batch(context[None], steps, None, actions, None, 1, torch.Generator().manual_seed(seed))
+    return closed, opened[0, 4:].cpu(), calls
+
+
+def test_a_closed_loop_episode_reproduces_the_open_loop_rollout_of_its_actions(pipeline: Gaia1Pipeline) -> None:
+    """The episode keeps one sampling session: token for token the open-loop rollout, through 3 window slides
+    (learned step embeddings: each slide re-prefills the window, every other step feeds one frame's positions)."""
+    window = int(pipeline.world_model.frames)
+    closed, opened, calls = closed_and_open(pipeline, window - 4 + 3)
+    assert torch.equal(closed, opened)
+    edge = pipeline.world_model.m + 2 + 1  # the last frame's last token and actions, then the new step's text
+    assert sum(c > edge for c in calls) == 1 + 3  # the context's prefill, then one re-prefill per slide
+
+
+def test_with_rotary_time_no_step_re_prefills(pipeline: Gaia1Pipeline) -> None:
+    """A world model with relative time (random weights, the shipped layout): through window slides too, each
+    step feeds the cache one frame's positions, and the episode still equals the open-loop rollout."""
+    from gaia_app.models.gaia1.world_model import WorldModel
+
+    shipped = pipeline.world_model
+    torch.manual_seed(0)
+    net = WorldModel(shipped.vocab_size, dim=32, depth=2, heads=4, frames=6, text_tokens=shipped.m,
+                     image_tokens=shipped.n, text_dim=8, action_deltas=True, temporal_encoding="rope").eval()
+    rope = Gaia1Pipeline(pipeline.tokenizer, net, pipeline.image_size, rate=pipeline.rate)
+    closed, opened, calls = closed_and_open(rope, 6, seed=3)
+    assert torch.equal(closed, opened)
+    assert max(calls[1:]) <= net.m + 2 + 1  # after the context's prefill: one step's edge at most
 
 
 def test_bad_actions_are_named(pipeline: Gaia1Pipeline) -> None:
@@ -104,3 +135,19 @@ def test_closed_loop_drive_writes_its_recording_and_record(tmp_path) -> None:
     assert all(0 <= s["command"][0] <= 70 and np.isfinite(s["estimated_speed"]) for s in record["steps"])
     entities = {c.entity_path for c in RrdReader(str(tmp_path / "drive.rrd")).stream().collect().stream().to_chunks()}
     assert {"/camera", "/speed/commanded", "/speed/estimated", "/trajectory"} <= entities
+
+
+def test_closed_loop_drive_captures_its_live_view(tmp_path) -> None:
+    """--screenshot streams the episode live to a headless viewer and writes what it shows (issue 25, item 6)."""
+    import cv2
+
+    from gaia_app.tasks.drive import main
+    from gaia_app.viz.screenshot import ViewerUnavailable
+
+    try:
+        main(["--seconds", "0.5", "--out", str(tmp_path), "--screenshot", str(tmp_path / "live.png")])
+    except ViewerUnavailable as why:
+        pytest.skip(f"headless Rerun viewer unavailable here: {why}")
+    shot = cv2.imread(str(tmp_path / "live.png"))
+    assert max(shot.shape[:2]) == 1280
+    assert shot.std() > 20 and len(np.unique(shot.reshape(-1, 3), axis=0)) > 1000  # the camera view is painted

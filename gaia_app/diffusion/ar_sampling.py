@@ -35,6 +35,8 @@ class StepConditions(Protocol):
 
     def cat(self, other: StepConditions) -> StepConditions: ...
 
+    def then(self, other: StepConditions) -> StepConditions: ...
+
 
 class TokenWorldModel(Protocol):
     """What the sampler needs of an autoregressive world model (gaia_app.models.gaia1.WorldModel has it): `frames`
@@ -143,36 +145,20 @@ class AutoregressiveSampler:
         With `guidance`, `uncond` (the unconditioned or negative-prompt stream) runs in the same
         forward as `cond`, stacked on the batch; eq. 3 combines their logits per token.
         """
-        if (guidance is None) != (uncond is None):
-            raise ValueError("classifier-free guidance needs both `guidance` and `uncond` (or neither)")
-        b, t0, n = context.shape
+        _, t0, n = context.shape
         if cond.text.shape[1] < t0 + frames:
             raise ValueError(f"conditions cover {cond.text.shape[1]} steps, need t0 + frames = {t0 + frames}")
-        tokens = torch.cat([context, context.new_zeros(b, frames, n)], dim=1)
-        streams = cond if uncond is None else cond.cat(uncond)
+        session = self.session(net, context, cond, uncond, guidance, generator)
         scales = guidance.scales(frames, n) if guidance is not None else None
-        stream, window = None, -1
-        for k in tqdm(range(frames), desc="world model", unit="frame", disable=not self.progress):
-            t = t0 + k
-            start = max(0, t - (net.frames - 1))  # sliding window beyond T steps
-            rolling = stream is not None and stream.cache is not None and getattr(net, "rolling_cache", False)
-            if start != window and rolling:  # relative time: drop the oldest step, keep every other cached key
-                stream.cache.drop_front(net.step_len)
-                window = start
-            if start != window:
-                stream, window = WindowStream(net, self.use_cache), start
-                x = self.prefill(net, tokens, streams, start, t)
-            else:  # the previous frame's last image token and its actions, then this step's text
-                x = torch.cat([self.step(net, tokens, streams, t - 1, start)[:, net.m + n - 1 :],
-                               self.step(net, tokens, streams, t, start)[:, : net.m]], dim=1)
-            for i in range(n):
-                logits = stream.feed(x)
-                if guidance is not None:
-                    cond_logits, uncond_logits = logits.chunk(2)
-                    logits = guidance(cond_logits, uncond_logits, scales[k, i].item())
-                tokens[:, t, i] = self.picker(logits, generator)
-                x = self.step(net, tokens, streams, t, start)[:, net.m + i : net.m + i + 1]
-        return tokens
+        new = [session.next_frame(None if scales is None else scales[k])
+               for k in tqdm(range(frames), desc="world model", unit="frame", disable=not self.progress)]
+        return torch.cat([context, *(frame[:, None] for frame in new)], dim=1)
+
+    def session(self, net: TokenWorldModel, context: torch.Tensor, cond: StepConditions,
+                uncond: StepConditions | None = None, guidance: ClassifierFreeGuidance | None = None,
+                generator: torch.Generator | None = None) -> SamplingSession:
+        """A rollout advanced one frame per call (`SamplingSession.next_frame`), its KV cache kept in between."""
+        return SamplingSession(self, net, context, cond, uncond, guidance, generator)
 
     @staticmethod
     def step(net: TokenWorldModel, tokens: torch.Tensor, streams: StepConditions, t: int, start: int) -> torch.Tensor:
@@ -189,3 +175,82 @@ class AutoregressiveSampler:
         both = tokens[:, start:t].repeat(streams.text.shape[0] // tokens.shape[0], 1, 1)
         known = net.embed(both, streams.steps(start, t), 0)
         return torch.cat([known, AutoregressiveSampler.step(net, tokens, streams, t, start)[:, : net.m]], dim=1)
+
+
+class SamplingSession:
+    """One batch of rollouts, sampled one frame per `next_frame` call, its window's KV cache kept in between.
+
+    The sampler's own rollouts run a session to the end; a closed-loop simulator (pipelines/simulator.py) keeps one
+    open for a whole episode and appends each step's conditions (`extend`) as its action arrives, so a step feeds
+    only that frame's positions. Steps that fall out of the window (the last T − 1 frames and the step being
+    generated) are forgotten: `tokens` and `streams` hold the window only, `offset` counts the steps dropped before
+    it. A slide drops the oldest step from the cache with relative time (`rolling_cache`), and re-embeds and
+    re-prefills the window with learned absolute step embeddings, whose keys change with the window's start.
+
+    context (b, t0, n) int64; cond, uncond: conditions of at least the t0 context steps (GAIA-1 §5.1 eq. 3 runs
+    uncond in the same forward, stacked on the batch).
+    """
+
+    def __init__(self, sampler: AutoregressiveSampler, net: TokenWorldModel, context: torch.Tensor,
+                 cond: StepConditions, uncond: StepConditions | None = None,
+                 guidance: ClassifierFreeGuidance | None = None, generator: torch.Generator | None = None):
+        if (guidance is None) != (uncond is None):
+            raise ValueError("classifier-free guidance needs both `guidance` and `uncond` (or neither)")
+        if cond.text.shape[1] < context.shape[1]:
+            raise ValueError(f"conditions cover {cond.text.shape[1]} steps, the context has {context.shape[1]}")
+        self.sampler, self.net, self.guidance, self.generator = sampler, net, guidance, generator
+        self.tokens = context
+        self.streams = cond if uncond is None else cond.cat(uncond)
+        self.offset = 0
+        self.stream: WindowStream | None = None
+
+    @property
+    def steps(self) -> int:
+        """Steps known so far (context and generated), counted from the first context step."""
+        return self.offset + self.tokens.shape[1]
+
+    def extend(self, cond: StepConditions, uncond: StepConditions | None = None) -> None:
+        """Append the conditions of further steps: (b, k, ...) each, uncond given exactly when guided."""
+        if (self.guidance is None) != (uncond is None):
+            raise ValueError("this session is " + ("guided: extend needs uncond" if self.guidance is not None
+                                                   else "unguided: extend takes no uncond"))
+        self.streams = self.streams.then(cond if uncond is None else cond.cat(uncond))
+
+    def next_frame(self, scales: torch.Tensor | None = None) -> torch.Tensor:
+        """Sample the next step's n tokens → (b, n). scales (n,): guidance per token (a one-frame rollout's
+        `guidance.scales(1, n)[0]` when None)."""
+        net, (b, known, n) = self.net, self.tokens.shape
+        if known >= net.frames:  # keep the last T − 1 steps: the window then ends with the step being sampled
+            self.forget(known - (net.frames - 1))
+        t = self.tokens.shape[1]
+        if self.streams.text.shape[1] <= t:
+            raise ValueError(f"no conditions for step {self.steps}: extend the session first")
+        if self.guidance is not None and scales is None:
+            scales = self.guidance.scales(1, n)[0]
+        tokens = torch.cat([self.tokens, self.tokens.new_zeros(b, 1, n)], dim=1)
+        if self.stream is None:
+            self.stream = WindowStream(net, self.sampler.use_cache)
+            x = self.sampler.prefill(net, tokens, self.streams, 0, t)
+        else:  # the previous frame's last image token and its actions, then this step's text
+            x = torch.cat([self.sampler.step(net, tokens, self.streams, t - 1, 0)[:, net.m + n - 1 :],
+                           self.sampler.step(net, tokens, self.streams, t, 0)[:, : net.m]], dim=1)
+        for i in range(n):
+            logits = self.stream.feed(x)
+            if self.guidance is not None:
+                cond_logits, uncond_logits = logits.chunk(2)
+                logits = self.guidance(cond_logits, uncond_logits, scales[i].item())
+            tokens[:, t, i] = self.sampler.picker(logits, self.generator)
+            x = self.sampler.step(net, tokens, self.streams, t, 0)[:, net.m + i : net.m + i + 1]
+        self.tokens = tokens
+        return tokens[:, t]
+
+    def forget(self, count: int) -> None:
+        """Drop the `count` oldest steps: from the KV cache with relative time, else the window is re-prefilled."""
+        self.tokens = self.tokens[:, count:]
+        self.streams = self.streams.steps(count, self.streams.text.shape[1])
+        self.offset += count
+        cache = None if self.stream is None else self.stream.cache
+        if cache is not None and getattr(self.net, "rolling_cache", False):
+            cache.drop_front(count * self.net.step_len)
+        else:
+            self.stream = None

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import torch
 
-from gaia_app.diffusion.ar_sampling import AutoregressiveSampler
+from gaia_app.diffusion.ar_sampling import AutoregressiveSampler, SamplingSession
 from gaia_app.diffusion.guidance import ClassifierFreeGuidance
 from gaia_app.models.gaia1.world_model import STREAMS, Conditions, WorldModel
 
@@ -57,7 +57,14 @@ class WorldModelRolloutPipeline:
         """
         steps = lead + context.shape[1] + frames
         context, text, actions, negative_text = (repeat_futures(x, num_futures) for x in (context, text, actions, negative_text))
-        batch = context.shape[0]
+        cond, uncond = self.streams(context.shape[0], steps, text, actions, negative_text, lead)
+        tokens = self.sampler(self.net, context, cond, uncond, frames, self.rollout_guidance(text), generator)
+        return RolloutOutput(tokens, context.shape[1])
+
+    def streams(self, batch: int, steps: int, text: torch.Tensor | None, actions: torch.Tensor | None,
+                negative_text: torch.Tensor | None = None, lead: int = 0) -> tuple[Conditions, Conditions | None]:
+        """The conditioned stream and, when guided, the unconditioned (or negative-prompt) one, for steps
+        lead..steps − 1 of the given (b, steps, ...) streams (the first `lead` only inform action deltas)."""
         cond = self.conditions(batch, steps, text, actions)
         uncond = None
         if self.guidance is not None and negative_text is not None:  # negative prompting (GAIA-1 §5.1)
@@ -66,6 +73,22 @@ class WorldModelRolloutPipeline:
             uncond = self.conditions(batch, steps, text, actions, drop=self.guided_streams)
         if lead:
             cond, uncond = cond.steps(lead, steps), None if uncond is None else uncond.steps(lead, steps)
-        guidance = None if self.guidance is None else self.guidance.for_rollout(prompted=text is not None)
-        tokens = self.sampler(self.net, context, cond, uncond, frames, guidance, generator)
-        return RolloutOutput(tokens, context.shape[1])
+        return cond, uncond
+
+    def rollout_guidance(self, text: torch.Tensor | None) -> ClassifierFreeGuidance | None:
+        return None if self.guidance is None else self.guidance.for_rollout(prompted=text is not None)
+
+    def session(self, context: torch.Tensor, steps: int, text: torch.Tensor | None, actions: torch.Tensor | None,
+                generator: torch.Generator | None = None, negative_text: torch.Tensor | None = None) -> SamplingSession:
+        """A rollout kept open for a closed loop: context (b, t0, n) int64 and the first `steps` (≥ t0) steps of its
+        text (b, steps, m, e) and actions (b, steps, 2); `extend_session` appends further steps' conditions and
+        `next_frame` samples one step at a time. Guidance is chosen once, by whether the session is prompted."""
+        cond, uncond = self.streams(context.shape[0], steps, text, actions, negative_text)
+        return self.sampler.session(self.net, context, cond, uncond, self.rollout_guidance(text), generator)
+
+    def extend_session(self, session: SamplingSession, actions: torch.Tensor, text: torch.Tensor | None = None,
+                       negative_text: torch.Tensor | None = None, lead: int = 1) -> None:
+        """Append steps to `session`: actions (b, lead + k, 2) and text (b, lead + k, m, e) whose first `lead` steps
+        are those before the new ones (their actions give the first new step its action delta, as an open-loop
+        rollout has it)."""
+        session.extend(*self.streams(session.tokens.shape[0], actions.shape[1], text, actions, negative_text, lead))

@@ -11,11 +11,14 @@ three lines where a user wants its wrappers. The observation is the next camera 
 curvature 1/m), held for one step. Rewards are the user's business (0.0 here); an episode is truncated after
 `max_steps`.
 
-Each step samples one frame given the last T − 1 frames and their actions: the same window and positions as an
-open-loop rollout of the same actions (`Gaia1Pipeline.sample_batch`), so a closed-loop episode fed the actions of
-an open-loop rollout reproduces it token for token once the window slides (tests/test_simulator.py). This is the
-full re-prefill path: every step re-embeds its window. Keeping the KV cache across steps (issue 25, item 2) needs
-relative temporal positions, since GAIA-1's learned absolute ones change when the window slides.
+An episode is one open sampling session (`AutoregressiveSampler.session`): its KV cache persists across `step`
+calls, so a step feeds the world model only the new frame's positions. Once the window is full (T steps), each
+step slides it by one: a model with relative time (`model.net.temporal_encoding=rope`) drops the oldest step from
+the cache and the slide costs nothing extra; GAIA-1's learned absolute step embeddings change when the window
+slides, so such a model (the paper preset, the shipped reference weights) re-embeds and re-prefills its window on
+each slide. Either way the windows, positions and conditions are those of an open-loop rollout of the same actions
+(`Gaia1Pipeline.sample_batch`), so a closed-loop episode fed the actions of an open-loop rollout reproduces it token
+for token (tests/test_simulator.py).
 """
 
 from __future__ import annotations
@@ -25,10 +28,18 @@ from typing import Any
 
 import numpy as np
 import torch
+from einops import rearrange
 
 from gaia_app.data.transforms import to_uint8
+from gaia_app.diffusion.ar_sampling import SamplingSession
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
-from gaia_app.pipelines.gaia1_inputs import COMMAND_RANGES, DEFAULT_SPEED, folder_clip, prepare_context, synthetic_clip
+from gaia_app.pipelines.gaia1_inputs import (
+    COMMAND_RANGES,
+    DEFAULT_SPEED,
+    folder_clip,
+    prepare_context,
+    synthetic_clip,
+)
 
 CONTEXTS = ("synthetic", "folder", "none")
 
@@ -99,7 +110,9 @@ class DrivingSimulator:
                                      np.uint8)
         self.action_space = action_space()
         self.window = int(pipeline.world_model.frames)
-        self.tokens: torch.Tensor | None = None  # (n, h, w) every frame of the episode so far
+        self.tokens: torch.Tensor | None = None  # (steps, h, w) every frame of the episode so far
+        self.session: SamplingSession | None = None  # the world model's sampling state, opened by the first step
+        self.prompt_features: torch.Tensor | None = None  # (1, 1, m, e) the prompt, encoded once per episode
         self.actions: list[np.ndarray] = []
         self.prompt: str | None = None
         self.generator: torch.Generator | None = None
@@ -120,6 +133,8 @@ class DrivingSimulator:
         if context not in CONTEXTS:
             raise ValueError(f"reset option context={context!r}: expected one of {CONTEXTS}")
         self.prompt = options.get("prompt")
+        self.prompt_features = None if self.prompt is None else self.pipeline.encode_text_batch([[self.prompt]])
+        self.session = None
         self.generator = torch.Generator(device=self.pipeline.device).manual_seed(0 if seed is None else int(seed))
         self.steps = 0
         if context == "none":
@@ -155,25 +170,33 @@ class DrivingSimulator:
         return self.last_frame
 
     def close(self) -> None:
-        self.tokens = None
+        self.tokens, self.session = None, None
 
     # ---- internals --------------------------------------------------------------------------------
 
     def advance(self, action: np.ndarray) -> np.ndarray:
-        """Sample the next frame under `action` from the last T − 1 frames (the world model's window)."""
+        """Sample the next frame under `action`: the first step opens the sampling session on the context, later
+        ones append their conditions to it (with the previous action, for the action's change)."""
         self.actions.append(action)
-        keep = min(len(self.tokens), self.window - 1)
-        context = self.tokens[len(self.tokens) - keep:]
-        # one action before the window as lead: the change of the window's first action, as an open-loop rollout has it
-        lead = min(1, len(self.tokens) - keep)
-        actions = torch.from_numpy(np.stack(self.actions[len(self.actions) - keep - 1 - lead:]))[None]
-        text = (None if self.prompt is None else
-                self.pipeline.encode_text_batch([[self.prompt] * (lead + keep + 1)]))
-        sampled, _ = self.pipeline.sample_batch(context[None], 1, text, actions, None, 1, self.generator, lead)
-        new = sampled[0, -1].to(self.tokens.device)
-        self.tokens = torch.cat([self.tokens, new[None]])
+        rollouts = self.pipeline.rollouts
+        if self.session is None:
+            steps = len(self.tokens) + 1
+            context = rearrange(self.tokens, "t h w -> 1 t (h w)")
+            self.session = rollouts.session(context, steps, self.text(steps), self.action_steps(steps), self.generator)
+        else:
+            rollouts.extend_session(self.session, self.action_steps(2), self.text(2))
+        new = rearrange(self.session.next_frame()[0], "(h w) -> h w", h=self.pipeline.token_grid[0])
+        self.tokens = torch.cat([self.tokens, new[None].to(self.tokens.device)])
         self.last_frame = self.observe(new)
         return self.last_frame
+
+    def action_steps(self, steps: int) -> torch.Tensor:
+        """(1, steps, 2) the last `steps` actions on the world model's device."""
+        return torch.from_numpy(np.stack(self.actions[-steps:]))[None].to(self.pipeline.device)
+
+    def text(self, steps: int) -> torch.Tensor | None:
+        """(1, steps, m, e) the episode's prompt at every step, or None."""
+        return None if self.prompt_features is None else self.prompt_features.expand(-1, steps, -1, -1)
 
     def observe(self, tokens: torch.Tensor) -> np.ndarray:
         """Tokens (h, w) → the frame (H, W, 3) uint8, decoded by the tokenizer."""

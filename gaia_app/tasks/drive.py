@@ -2,6 +2,7 @@
 
     python -m gaia_app.tasks.drive --weights gaia1 --seconds 10 --target-speed 12 --out outputs/drive
     python -m gaia_app.tasks.drive --viewer         # also stream live to a Rerun viewer listening on 127.0.0.1
+    python -m gaia_app.tasks.drive --screenshot docs/gallery/simulator_live.png   # stream to a headless viewer, capture it
 
 The controller sees only the generated frames: the shipped inverse-dynamics probe (the one the controllability
 table measures with) estimates the ego speed from each new pair of frames, a proportional controller turns the
@@ -9,7 +10,9 @@ error against `--target-speed` into the next speed command (gain `--gain` per st
 and the curvature command holds `--curvature`. Frames, the estimated and commanded speed, the trajectory (speed
 and curvature integrated at the world model's rate) go to Rerun: always drive.rrd in --out and, with --viewer, live
 to a viewer this command starts on 127.0.0.1 (gaia_app/viz/viewer.py; the SDK's own spawn would listen on every
-interface). The episode's numbers go to drive.json.
+interface). With --screenshot the stream goes live to a headless viewer instead (Mesa's software Vulkan is enough
+without a GPU, gaia_app/viz/screenshot.py) and its view at the end of the episode is written as a PNG. The episode's
+numbers go to drive.json.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from typing import Any
 
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 import torch
 from tqdm import tqdm
 
@@ -31,6 +35,7 @@ from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.simulator import DrivingSimulator
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.utils.shipped import shipped_folder
+from gaia_app.viz.screenshot import capture_live, spawn_headless
 from gaia_app.viz.viewer import LOOPBACK, ViewerUnavailable, port_open, spawn_viewer
 
 
@@ -70,6 +75,15 @@ def log_step(rec: rr.RecordingStream, step: int, time_s: float, frame: np.ndarra
     rec.log("/trajectory", rr.LineStrips3D([[[p[0], p[1], 0.0] for p in trail]]))
 
 
+def drive_blueprint() -> rrb.Blueprint:
+    """The camera beside the commanded and estimated speed, the curvature command and the trajectory."""
+    series = rrb.Vertical(rrb.TimeSeriesView(origin="/speed", name="speed (m/s): commanded, estimated from pixels"),
+                          rrb.TimeSeriesView(origin="/curvature", name="curvature command (1/m)"),
+                          rrb.Spatial3DView(origin="/trajectory", name="trajectory (commands integrated)"))
+    return rrb.Blueprint(rrb.Horizontal(rrb.Spatial2DView(origin="/camera", name="camera (generated)"), series,
+                                        column_shares=[3, 2]), collapse_panels=True)
+
+
 def drive(env: DrivingSimulator, probe: torch.nn.Module, rec: rr.RecordingStream, steps: int, target: float,
           curvature: float, gain: float, max_step: float, seed: int) -> dict[str, Any]:
     """Run one closed-loop episode; returns its per-step record."""
@@ -107,6 +121,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--out", type=Path, default=Path("outputs/drive"))
     parser.add_argument("--viewer", action="store_true", help="stream live to a Rerun viewer on 127.0.0.1")
     parser.add_argument("--viewer-port", type=int, default=9876)
+    parser.add_argument("--screenshot", type=Path, help="stream to a headless viewer and save its final view (PNG)")
     args = parser.parse_args(argv)
     folder = shipped_folder(args.weights)
     pipeline = Gaia1Pipeline.from_weights(folder, video_decoder=False)
@@ -116,7 +131,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     args.out.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream("gaia_app", recording_id=f"drive-{args.seed}")
     sinks: list[Any] = [rr.FileSink(str(args.out / "drive.rrd"))]
-    if args.viewer:
+    headless = None
+    if args.screenshot:
+        headless = spawn_headless()  # ViewerUnavailable names the missing driver: asked for, so not skipped
+        sinks.append(rr.GrpcSink(headless[0].url))
+    elif args.viewer:
         try:
             if not port_open(LOOPBACK, args.viewer_port):
                 spawn_viewer(args.viewer_port, LOOPBACK)
@@ -124,9 +143,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         except (ViewerUnavailable, OSError) as error:
             print(f"no live viewer ({error}); writing {args.out / 'drive.rrd'} only")
     rec.set_sinks(*sinks)
+    rec.send_blueprint(drive_blueprint())
     results = drive(env, dynamics.eval(), rec, steps, args.target_speed, args.curvature, args.gain, args.max_accel,
                     args.seed)
     rec.flush()
+    if headless is not None:
+        print(f"live view: {capture_live(*headless, args.screenshot)}")
     atomic_write_text(args.out / "drive.json", json.dumps(results, indent=2))
     print(f"mean |estimated - target| speed over the last half: {results['mean_abs_speed_error_last_half']:.2f} m/s; "
           f"{args.out / 'drive.json'}, {args.out / 'drive.rrd'}")

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from gaia_app.utils.run_dir import atomic_write_bytes
-from gaia_app.viz.viewer import LOOPBACK, ViewerUnavailable, spawn_viewer  # noqa: F401 (ViewerUnavailable: re-exported)
+from gaia_app.viz.viewer import LOOPBACK, ViewerUnavailable, spawn_viewer
 
 
 def _free_port() -> int:
@@ -20,8 +20,8 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _spawn_headless():
-    """A headless viewer process on a free loopback port, and a client of it."""
+def spawn_headless():
+    """A headless viewer process on a free loopback port, and a client of it (its `url` takes a GrpcSink)."""
     from rerun.experimental import ViewerClient  # experimental API: import where used
 
     port = _free_port()
@@ -45,7 +45,7 @@ def screenshot_recording(rrd: str | Path, png: str | Path, frame: int | None = N
     rrd = Path(rrd)
     if not rrd.is_file():
         raise FileNotFoundError(f"no Rerun recording at {rrd}")
-    viewer, process = _spawn_headless()
+    viewer, process = spawn_headless()
     try:
         try:
             opened = viewer.open(str(rrd.resolve()))
@@ -56,14 +56,27 @@ def screenshot_recording(rrd: str | Path, png: str | Path, frame: int | None = N
             raise RuntimeError(f"the Rerun viewer opened no recording from {rrd}")
         timeline = _frame_timeline(viewer, rrd)
         viewer.set_time("frame", sequence=timeline.end if frame is None else frame, play_state="paused")
-        time.sleep(settle_s)
-        viewer.take_screenshot(max_size=max_size)  # the first paint fetches the chunks in view
-        time.sleep(settle_s)
-        atomic_write_bytes(png, viewer.take_screenshot(max_size=max_size))
-        return Path(png)
+        return _capture(viewer, png, max_size, settle_s)
     finally:  # the client only connected: the viewer process is ours to stop
         process.kill()
         process.wait(timeout=10)
+
+
+def capture_live(viewer, process, png: str | Path, max_size: int = 1280, settle_s: float = 3.0) -> Path:
+    """Write what a headless viewer fed live (spawn_headless) shows now as a PNG, atomically, then stop it."""
+    try:
+        return _capture(viewer, png, max_size, settle_s)
+    finally:
+        process.kill()
+        process.wait(timeout=10)
+
+
+def _capture(viewer, png: str | Path, max_size: int, settle_s: float) -> Path:
+    time.sleep(settle_s)
+    viewer.take_screenshot(max_size=max_size)  # the first paint fetches the chunks in view
+    time.sleep(settle_s)
+    atomic_write_bytes(png, viewer.take_screenshot(max_size=max_size))
+    return Path(png)
 
 
 def _frame_timeline(viewer, rrd: Path):

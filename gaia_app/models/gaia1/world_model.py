@@ -52,6 +52,10 @@ class Conditions:
         """Stack two conditions along the batch (the guided and unguided streams in one forward)."""
         return Conditions(torch.cat([self.text, other.text]), torch.cat([self.actions, other.actions]))
 
+    def then(self, other: Conditions) -> Conditions:
+        """These steps followed by `other`'s (concatenated along time: a closed loop's next step)."""
+        return Conditions(torch.cat([self.text, other.text], 1), torch.cat([self.actions, other.actions], 1))
+
 
 class WorldModelConditioner(nn.Module):
     """Projects text embeddings and actions to d; drops them to learned null embeddings (GAIA-1 §2.1, §2.3).

@@ -1,0 +1,117 @@
+"""Frames/s of the closed-loop simulator's `step`, side by side in one run (docs/benchmarks.md, "Simulator step";
+issue 25, item 2).
+
+One episode: 4 context frames, then `--steps` steps with random commands (every step past the world model's
+window slides it); each step samples a frame and decodes it with the tokenizer, as `DrivingSimulator.step` does.
+Paths, alternated `--repeats` times (medians):
+  session         DrivingSimulator as shipped: one sampling session per episode, its KV cache kept across steps
+                  (learned step embeddings re-prefill the window on each slide)
+  window per step the previous implementation: every step samples through a fresh window of the last T − 1
+                  frames (`Gaia1Pipeline.sample_batch` with one lead step), i.e. re-prefills every step
+  full recompute  the session with the sampler's KV cache off (the whole window re-run at every token)
+for the shipped reference weights (learned time), and for a world model of the same layout with rotary time
+(random weights: `--rope`), where a slide drops the oldest step from the cache. Real-time ratio: frames/s ÷ 6.25.
+
+    python benchmarks/bench_simulator_step.py --steps 16 --repeats 3 --rope
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from gaia_app.diffusion.ar_sampling import AutoregressiveSampler
+from gaia_app.models.gaia1.world_model import WorldModel
+from gaia_app.pipelines.gaia1 import Gaia1Pipeline
+from gaia_app.pipelines.simulator import DrivingSimulator
+from gaia_app.utils.shipped import shipped_folder
+
+REAL_TIME_HZ = 6.25
+
+
+class WindowPerStep(DrivingSimulator):
+    """The simulator before sessions: every step samples its frame through a fresh window (re-prefill)."""
+
+    def advance(self, action: np.ndarray) -> np.ndarray:
+        self.actions.append(action)
+        keep = min(len(self.tokens), self.window - 1)
+        context = self.tokens[len(self.tokens) - keep:]
+        lead = min(1, len(self.tokens) - keep)
+        actions = torch.from_numpy(np.stack(self.actions[len(self.actions) - keep - 1 - lead:]))[None]
+        sampled, _ = self.pipeline.sample_batch(context[None], 1, None, actions, None, 1, self.generator, lead)
+        self.tokens = torch.cat([self.tokens, sampled[0, -1:].to(self.tokens.device)])
+        self.last_frame = self.observe(self.tokens[-1])
+        return self.last_frame
+
+
+def episode_rate(env: DrivingSimulator, steps: int, seed: int) -> float:
+    """Frames/s of `steps` steps after a reset (the reset's context encoding not counted)."""
+    rng = np.random.default_rng(seed)
+    env.reset(seed=seed, options={"index": seed})
+    commands = [[rng.uniform(6, 14), rng.uniform(-0.03, 0.03)] for _ in range(steps)]
+    start = time.perf_counter()
+    for action in commands:
+        env.step(action)
+    return steps / (time.perf_counter() - start)
+
+
+def rope_pipeline(shipped: Gaia1Pipeline) -> Gaia1Pipeline:
+    """The shipped tokenizer with a random world model of the shipped layout (world_model.yaml), rotary time."""
+    layout = yaml.safe_load((shipped_folder("gaia1") / "world_model.yaml").read_text())["nets"]["net"]
+    layout = {k: v for k, v in layout.items() if not k.startswith("_")} | {"temporal_encoding": "rope"}
+    torch.manual_seed(0)
+    return Gaia1Pipeline(shipped.tokenizer, WorldModel(**layout).eval(), shipped.image_size, rate=shipped.rate)
+
+
+def paths(pipeline: Gaia1Pipeline, full: bool) -> dict[str, DrivingSimulator]:
+    envs = {"session": DrivingSimulator(pipeline), "window per step": WindowPerStep(pipeline)}
+    if full:
+        uncached = Gaia1Pipeline(pipeline.tokenizer, pipeline.world_model, pipeline.image_size,
+                                 sampler=AutoregressiveSampler(pipeline.rollouts.sampler.picker, use_cache=False),
+                                 rate=pipeline.rate)
+        envs["full recompute"] = DrivingSimulator(uncached)
+    return envs
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--steps", type=int, default=16)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--rope", action="store_true", help="also a rotary-time world model of the shipped layout")
+    parser.add_argument("--full-steps", type=int, default=2, help="steps of the (slow) full-recompute path; 0: skip")
+    parser.add_argument("--out", default="outputs/bench_simulator_step.json")
+    args = parser.parse_args()
+    shipped = Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=False)
+    models = {"shipped (learned time)": shipped} | ({"rotary time (random weights)": rope_pipeline(shipped)}
+                                                    if args.rope else {})
+    results: dict[str, Any] = {"threads": torch.get_num_threads(), "steps": args.steps}
+    for label, pipeline in models.items():
+        envs = paths(pipeline, args.full_steps > 0)
+        runs: dict[str, list[float]] = {name: [] for name in envs}
+        for env in envs.values():  # warm-up
+            episode_rate(env, 1, seed=99)
+        for repeat in range(args.repeats):  # alternated, so every path sees the same machine
+            for name, env in envs.items():
+                steps = args.full_steps if name == "full recompute" else args.steps
+                runs[name].append(episode_rate(env, steps, seed=repeat))
+        row = {name: {"frames_per_s": statistics.median(r), "real_time_ratio": statistics.median(r) / REAL_TIME_HZ,
+                      "runs": r} for name, r in runs.items()}
+        row["session_over_window_per_step"] = row["session"]["frames_per_s"] / row["window per step"]["frames_per_s"]
+        results[label] = row
+        for name in envs:
+            print(f"{label} {name}: {row[name]['frames_per_s']:.2f} frames/s ({row[name]['real_time_ratio']:.2f}× real time)")
+        print(f"{label}: session / window per step {row['session_over_window_per_step']:.2f}×")
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()
