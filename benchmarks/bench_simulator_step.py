@@ -38,11 +38,12 @@ REAL_TIME_HZ = 6.25
 
 
 class WindowPerStep(DrivingSimulator):
-    """The simulator before sessions: every step samples its frame through a fresh window (re-prefill)."""
+    """The simulator before sessions: every step samples its frame through a fresh window (re-prefill). Unprompted
+    only (the episodes here have no prompt)."""
 
     def advance(self, action: np.ndarray) -> np.ndarray:
         self.actions.append(action)
-        keep = min(len(self.tokens), self.window - 1)
+        keep = min(len(self.tokens), int(self.pipeline.world_model.frames) - 1)
         context = self.tokens[len(self.tokens) - keep:]
         lead = min(1, len(self.tokens) - keep)
         actions = torch.from_numpy(np.stack(self.actions[len(self.actions) - keep - 1 - lead:]))[None]

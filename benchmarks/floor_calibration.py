@@ -25,15 +25,22 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from gaia_app.data.synthetic.export import parse_mix
 from gaia_app.diffusion.ar_sampling import AutoregressiveSampler, TokenPicker
 from gaia_app.eval.controllability import load_probes, probe_clips
 from gaia_app.models.probes import ATTRIBUTES
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.gaia1_inputs import future_frames
-from gaia_app.tasks.controllability import rollout_frames, share_row, tokenized, world_clips
+from gaia_app.tasks.controllability import (
+    rollout_frames,
+    share_row,
+    tokenized,
+    world_clips,
+)
 from gaia_app.utils.shipped import shipped_folder
 
 SCENE = ("time_of_day", "weather")
+REAL = "real clips (the --time-of-day-mix, else the default mix)"
 
 
 def reading(probe, video: torch.Tensor) -> dict[str, dict[str, list[float]]]:
@@ -63,7 +70,8 @@ def unprompted(folder: Path, picker: TokenPicker, count: int, frames: int, seed:
 
 def markdown(results: dict) -> str:
     lines = [f"Unprompted rollouts ({results['rollouts']} per picker, generator seed {results['seed']}) and real clips "
-             f"of the default mix ({results['real_clips']}, world {results['world_seed']}) as the scene probe reads "
+             f"of the {results.get('time_of_day_mix') or 'default'} mix ({results['real_clips']}, world "
+             f"{results['world_seed']}) as the scene probe reads "
              "them; share [95 % Wilson interval]; TV: total variation distance from the real clips' reading.", ""]
     for attr in SCENE:
         values = list(ATTRIBUTES[attr])
@@ -82,6 +90,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=13)
     parser.add_argument("--world-seed", type=int, default=3013)
     parser.add_argument("--real-clips", type=int, default=288)
+    parser.add_argument("--time-of-day-mix", help="the real clips' mix, e.g. the weights' training mix "
+                        "'day=0.7,dusk=0.2,night=0.1' (default: the synthetic world's)")
     parser.add_argument("--pickers", default="top_k,top_p,sample")
     parser.add_argument("--k", type=int, default=50)
     parser.add_argument("--p", type=float, default=0.9)
@@ -96,16 +106,17 @@ def main() -> None:
     frames = future_frames(args.seconds, pipeline.rate)
     height, width = pipeline.image_size
     start = time.time()
-    real = probe_clips(world_clips(args.world_seed, args.real_clips, height, width, frames, pipeline.rate),
+    mix = {"time_of_day_mix": parse_mix(args.time_of_day_mix)} if args.time_of_day_mix else None
+    real = probe_clips(world_clips(args.world_seed, args.real_clips, height, width, frames, pipeline.rate, mix=mix),
                        pipeline.rate, frames).frames
-    rows = {"real clips (default mix)": reading(scene, real),
+    rows = {REAL: reading(scene, real),
             "real clips through the tokenizer": reading(scene, tokenized(pipeline, real))}
     for mode in args.pickers.split(","):
         picker = TokenPicker(mode, k=args.k, p=args.p)
         label = {"top_k": f"top_k k={args.k}", "top_p": f"top_p p={args.p}", "sample": "sample (full)"}.get(mode, mode)
         rows[label] = reading(scene, unprompted(folder, picker, args.rollouts, frames, args.seed, args.batch))
-    reference = rows["real clips (default mix)"]
-    results = {"rollouts": args.rollouts, "seed": args.seed, "world_seed": args.world_seed, "real_clips": args.real_clips,
+    reference = rows[REAL]
+    results = {"time_of_day_mix": args.time_of_day_mix, "rollouts": args.rollouts, "seed": args.seed, "world_seed": args.world_seed, "real_clips": args.real_clips,
                "frames": frames, "minutes": round((time.time() - start) / 60, 1), "rows": rows,
                "tv": {name: {attr: total_variation(row[attr], reference[attr]) for attr in SCENE}
                       for name, row in rows.items()}}

@@ -86,6 +86,19 @@ def test_with_rotary_time_no_step_re_prefills(pipeline: Gaia1Pipeline) -> None:
     assert max(calls[1:]) <= net.m + 2 + 1  # after the context's prefill: one step's edge at most
 
 
+def test_steps_build_no_autograd_graph_and_keep_their_streams(pipeline: Gaia1Pipeline) -> None:
+    """The session's cache and conditions carry no graph (weights loaded for inference still require grad), and a
+    step cannot bring streams the episode was not opened with."""
+    env = DrivingSimulator(pipeline)
+    env.reset(seed=0)
+    env.step([10.0, 0.0])
+    env.step([10.0, 0.01])
+    keys, values = env.session.stream.cache.buffers[0]
+    assert not (keys.requires_grad or values.requires_grad or env.session.streams.actions.requires_grad)
+    with pytest.raises(ValueError, match=r"opened with streams \('actions',\); these steps bring \('text', 'actions'\)"):
+        pipeline.rollouts.extend_session(env.session, torch.zeros(1, 2, 2), text=torch.zeros(1, 2, 4, 64))
+
+
 def test_bad_actions_are_named(pipeline: Gaia1Pipeline) -> None:
     env = DrivingSimulator(pipeline, max_steps=2)
     with pytest.raises(RuntimeError, match="reset"):

@@ -9,7 +9,9 @@ positions; without it (`use_cache=False`, the reference for tests and benchmarks
 re-runs the whole window. Beyond T steps a sliding window keeps the last T - 1 frames as context: with learned
 absolute step embeddings (GAIA-1 §2.1) every slide re-embeds and re-prefills the window, since each cached key
 carries its old window index; with rotary step positions (`temporal_encoding=rope`, the net's `rolling_cache`) the
-oldest step is dropped from the cache and the slide costs what any other frame costs.
+oldest step is dropped from the cache and the slide costs what any other frame costs (exact in the first layer,
+an approximation of the re-prefilled window beyond it: `SamplingSession`). `SamplingSession` holds one rollout's
+state between frames, so a closed loop can append each step's conditions as they arrive.
 """
 
 from __future__ import annotations
@@ -156,25 +158,9 @@ class AutoregressiveSampler:
 
     def session(self, net: TokenWorldModel, context: torch.Tensor, cond: StepConditions,
                 uncond: StepConditions | None = None, guidance: ClassifierFreeGuidance | None = None,
-                generator: torch.Generator | None = None) -> SamplingSession:
+                generator: torch.Generator | None = None, given: tuple[str, ...] = ()) -> SamplingSession:
         """A rollout advanced one frame per call (`SamplingSession.next_frame`), its KV cache kept in between."""
-        return SamplingSession(self, net, context, cond, uncond, guidance, generator)
-
-    @staticmethod
-    def step(net: TokenWorldModel, tokens: torch.Tensor, streams: StepConditions, t: int, start: int) -> torch.Tensor:
-        """Embedded positions (B, s, d) of step t in the window beginning at step `start`."""
-        copies = streams.text.shape[0] // tokens.shape[0]  # one copy per stream
-        both = tokens[:, t : t + 1].repeat(copies, 1, 1)
-        previous = tokens[:, t - 1].repeat(copies, 1) if t > start else None
-        previous_actions = streams.actions[:, t - 1] if t > start else None
-        return net.embed(both, streams.steps(t, t + 1), t - start, previous, previous_actions)
-
-    @staticmethod
-    def prefill(net: TokenWorldModel, tokens: torch.Tensor, streams: StepConditions, start: int, t: int) -> torch.Tensor:
-        """The window's known steps start..t-1 in full, then step t's text: (B, (t - start)·s + m, d)."""
-        both = tokens[:, start:t].repeat(streams.text.shape[0] // tokens.shape[0], 1, 1)
-        known = net.embed(both, streams.steps(start, t), 0)
-        return torch.cat([known, AutoregressiveSampler.step(net, tokens, streams, t, start)[:, : net.m]], dim=1)
+        return SamplingSession(self, net, context, cond, uncond, guidance, generator, given)
 
 
 class SamplingSession:
@@ -182,18 +168,23 @@ class SamplingSession:
 
     The sampler's own rollouts run a session to the end; a closed-loop simulator (pipelines/simulator.py) keeps one
     open for a whole episode and appends each step's conditions (`extend`) as its action arrives, so a step feeds
-    only that frame's positions. Steps that fall out of the window (the last T − 1 frames and the step being
-    generated) are forgotten: `tokens` and `streams` hold the window only, `offset` counts the steps dropped before
-    it. A slide drops the oldest step from the cache with relative time (`rolling_cache`), and re-embeds and
-    re-prefills the window with learned absolute step embeddings, whose keys change with the window's start.
+    only that frame's positions. `tokens` and `streams` hold the window only (the last T − 1 steps and the step
+    being sampled); the steps before it are forgotten and counted in `dropped_steps`. On a slide, a net with
+    learned absolute step embeddings (GAIA-1 §2.1) re-embeds and re-prefills its window, whose every key changes
+    with the window's start; a net with relative time (`rolling_cache`, rotary steps) drops the oldest step from
+    the cache instead. That is exact in the first layer only: deeper layers keep keys and values computed while
+    the dropped step was in view (as Transformer-XL's segment memory and StreamingLLM do), so a rolled window
+    approximates a re-prefilled one rather than equalling it (docs/simulator.md).
 
     context (b, t0, n) int64; cond, uncond: conditions of at least the t0 context steps (GAIA-1 §5.1 eq. 3 runs
-    uncond in the same forward, stacked on the batch).
+    uncond in the same forward, stacked on the batch). given: names of the condition streams the caller built
+    them from (e.g. "text", "negative"), so the caller can check that later steps bring the same ones.
     """
 
     def __init__(self, sampler: AutoregressiveSampler, net: TokenWorldModel, context: torch.Tensor,
                  cond: StepConditions, uncond: StepConditions | None = None,
-                 guidance: ClassifierFreeGuidance | None = None, generator: torch.Generator | None = None):
+                 guidance: ClassifierFreeGuidance | None = None, generator: torch.Generator | None = None,
+                 given: tuple[str, ...] = ()):
         if (guidance is None) != (uncond is None):
             raise ValueError("classifier-free guidance needs both `guidance` and `uncond` (or neither)")
         if cond.text.shape[1] < context.shape[1]:
@@ -201,14 +192,16 @@ class SamplingSession:
         self.sampler, self.net, self.guidance, self.generator = sampler, net, guidance, generator
         self.tokens = context
         self.streams = cond if uncond is None else cond.cat(uncond)
-        self.offset = 0
+        self.dropped_steps = 0
         self.stream: WindowStream | None = None
+        self.given = tuple(given)
 
     @property
-    def steps(self) -> int:
+    def known_steps(self) -> int:
         """Steps known so far (context and generated), counted from the first context step."""
-        return self.offset + self.tokens.shape[1]
+        return self.dropped_steps + self.tokens.shape[1]
 
+    @torch.no_grad()
     def extend(self, cond: StepConditions, uncond: StepConditions | None = None) -> None:
         """Append the conditions of further steps: (b, k, ...) each, uncond given exactly when guided."""
         if (self.guidance is None) != (uncond is None):
@@ -216,6 +209,7 @@ class SamplingSession:
                                                    else "unguided: extend takes no uncond"))
         self.streams = self.streams.then(cond if uncond is None else cond.cat(uncond))
 
+    @torch.no_grad()
     def next_frame(self, scales: torch.Tensor | None = None) -> torch.Tensor:
         """Sample the next step's n tokens → (b, n). scales (n,): guidance per token (a one-frame rollout's
         `guidance.scales(1, n)[0]` when None)."""
@@ -224,33 +218,49 @@ class SamplingSession:
             self.forget(known - (net.frames - 1))
         t = self.tokens.shape[1]
         if self.streams.text.shape[1] <= t:
-            raise ValueError(f"no conditions for step {self.steps}: extend the session first")
+            raise ValueError(f"no conditions for step {self.known_steps}: extend the session first")
         if self.guidance is not None and scales is None:
             scales = self.guidance.scales(1, n)[0]
         tokens = torch.cat([self.tokens, self.tokens.new_zeros(b, 1, n)], dim=1)
         if self.stream is None:
             self.stream = WindowStream(net, self.sampler.use_cache)
-            x = self.sampler.prefill(net, tokens, self.streams, 0, t)
+            x = self.prefill(tokens, t)
         else:  # the previous frame's last image token and its actions, then this step's text
-            x = torch.cat([self.sampler.step(net, tokens, self.streams, t - 1, 0)[:, net.m + n - 1 :],
-                           self.sampler.step(net, tokens, self.streams, t, 0)[:, : net.m]], dim=1)
+            x = torch.cat([self.embed_step(tokens, t - 1)[:, net.m + n - 1 :], self.embed_step(tokens, t)[:, : net.m]],
+                          dim=1)
         for i in range(n):
             logits = self.stream.feed(x)
             if self.guidance is not None:
                 cond_logits, uncond_logits = logits.chunk(2)
                 logits = self.guidance(cond_logits, uncond_logits, scales[i].item())
             tokens[:, t, i] = self.sampler.picker(logits, self.generator)
-            x = self.sampler.step(net, tokens, self.streams, t, 0)[:, net.m + i : net.m + i + 1]
+            x = self.embed_step(tokens, t)[:, net.m + i : net.m + i + 1]
         self.tokens = tokens
         return tokens[:, t]
 
     def forget(self, count: int) -> None:
         """Drop the `count` oldest steps: from the KV cache with relative time, else the window is re-prefilled."""
-        self.tokens = self.tokens[:, count:]
-        self.streams = self.streams.steps(count, self.streams.text.shape[1])
-        self.offset += count
+        if not 0 < count <= self.tokens.shape[1]:
+            raise ValueError(f"cannot forget {count} of the window's {self.tokens.shape[1]} steps")
         cache = None if self.stream is None else self.stream.cache
         if cache is not None and getattr(self.net, "rolling_cache", False):
-            cache.drop_front(count * self.net.step_len)
+            cache.drop_front(count * self.net.step_len)  # first: it raises on a cache too short, changing nothing
         else:
             self.stream = None
+        self.tokens = self.tokens[:, count:]
+        self.streams = self.streams.steps(count, self.streams.text.shape[1])
+        self.dropped_steps += count
+
+    def embed_step(self, tokens: torch.Tensor, t: int) -> torch.Tensor:
+        """Embedded positions (B, s, d) of window step t (tokens (b, ≥ t + 1, n), every stream stacked on B)."""
+        copies = self.streams.text.shape[0] // tokens.shape[0]  # one copy per stream
+        both = tokens[:, t : t + 1].repeat(copies, 1, 1)
+        previous = tokens[:, t - 1].repeat(copies, 1) if t > 0 else None
+        previous_actions = self.streams.actions[:, t - 1] if t > 0 else None
+        return self.net.embed(both, self.streams.steps(t, t + 1), t, previous, previous_actions)
+
+    def prefill(self, tokens: torch.Tensor, t: int) -> torch.Tensor:
+        """The window's known steps 0..t-1 in full, then step t's text: (B, t·s + m, d)."""
+        both = tokens[:, :t].repeat(self.streams.text.shape[0] // tokens.shape[0], 1, 1)
+        known = self.net.embed(both, self.streams.steps(0, t), 0)
+        return torch.cat([known, self.embed_step(tokens, t)[:, : self.net.m]], dim=1)

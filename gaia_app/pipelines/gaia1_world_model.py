@@ -76,19 +76,33 @@ class WorldModelRolloutPipeline:
         return cond, uncond
 
     def rollout_guidance(self, text: torch.Tensor | None) -> ClassifierFreeGuidance | None:
+        """The guidance of one rollout (text_scale when prompted), or None."""
         return None if self.guidance is None else self.guidance.for_rollout(prompted=text is not None)
 
+    @torch.no_grad()
     def session(self, context: torch.Tensor, steps: int, text: torch.Tensor | None, actions: torch.Tensor | None,
                 generator: torch.Generator | None = None, negative_text: torch.Tensor | None = None) -> SamplingSession:
         """A rollout kept open for a closed loop: context (b, t0, n) int64 and the first `steps` (≥ t0) steps of its
         text (b, steps, m, e) and actions (b, steps, 2); `extend_session` appends further steps' conditions and
         `next_frame` samples one step at a time. Guidance is chosen once, by whether the session is prompted."""
         cond, uncond = self.streams(context.shape[0], steps, text, actions, negative_text)
-        return self.sampler.session(self.net, context, cond, uncond, self.rollout_guidance(text), generator)
+        return self.sampler.session(self.net, context, cond, uncond, self.rollout_guidance(text), generator,
+                                    given_streams(text, actions, negative_text))
 
+    @torch.no_grad()
     def extend_session(self, session: SamplingSession, actions: torch.Tensor, text: torch.Tensor | None = None,
                        negative_text: torch.Tensor | None = None, lead: int = 1) -> None:
         """Append steps to `session`: actions (b, lead + k, 2) and text (b, lead + k, m, e) whose first `lead` steps
         are those before the new ones (their actions give the first new step its action delta, as an open-loop
-        rollout has it)."""
+        rollout has it). The streams must be those the session was opened with."""
+        given = given_streams(text, actions, negative_text)
+        if given != session.given:
+            raise ValueError(f"the session was opened with streams {session.given}; these steps bring {given}")
         session.extend(*self.streams(session.tokens.shape[0], actions.shape[1], text, actions, negative_text, lead))
+
+
+def given_streams(text: torch.Tensor | None, actions: torch.Tensor | None,
+                  negative_text: torch.Tensor | None) -> tuple[str, ...]:
+    """Names of the condition streams given."""
+    return tuple(name for name, x in (("text", text), ("actions", actions), ("negative", negative_text))
+                 if x is not None)

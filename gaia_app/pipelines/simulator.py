@@ -109,7 +109,6 @@ class DrivingSimulator:
         self.observation_space = Box(np.zeros((height, width, 3), np.uint8), np.full((height, width, 3), 255, np.uint8),
                                      np.uint8)
         self.action_space = action_space()
-        self.window = int(pipeline.world_model.frames)
         self.tokens: torch.Tensor | None = None  # (steps, h, w) every frame of the episode so far
         self.session: SamplingSession | None = None  # the world model's sampling state, opened by the first step
         self.prompt_features: torch.Tensor | None = None  # (1, 1, m, e) the prompt, encoded once per episode
@@ -121,6 +120,7 @@ class DrivingSimulator:
 
     # ---- Gymnasium API ----------------------------------------------------------------------------
 
+    @torch.no_grad()
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         """Start an episode. options: context ("synthetic": clip `index` of the world `world_seed`; "folder": clip
         `index` of the clip folder `folder`; "none": the first frame is generated from `prompt` alone), prompt (a
@@ -174,6 +174,7 @@ class DrivingSimulator:
 
     # ---- internals --------------------------------------------------------------------------------
 
+    @torch.no_grad()
     def advance(self, action: np.ndarray) -> np.ndarray:
         """Sample the next frame under `action`: the first step opens the sampling session on the context, later
         ones append their conditions to it (with the previous action, for the action's change)."""

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -61,9 +62,9 @@ from gaia_app.eval.intervals import mean_interval, share_interval
 from gaia_app.models.probes import ATTRIBUTES
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.gaia1_inputs import future_actions, future_frames
-from gaia_app.utils.shipped import shipped_folder
 from gaia_app.tasks.rollout import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
+from gaia_app.utils.shipped import shipped_folder
 
 SOURCE_FPS = 25.0
 # the adherence metrics with targets: contrast errors of speed (accelerate vs brake) and curvature (left vs right)
@@ -73,12 +74,13 @@ UNIFORM_MIX = {"weather_mix": dict.fromkeys(WEATHERS, 1.0), "time_of_day_mix": d
 
 
 def world(seed: int, count: int, height: int, width: int, frames: int, rate: float, scenario: Scenario | None = None,
-          balanced: bool = False) -> SyntheticClipDataset:
+          balanced: bool = False, mix: Mapping[str, Mapping[str, float]] | None = None) -> SyntheticClipDataset:
     """Clips 0..count-1 of the synthetic world `seed`, long enough for `frames` frames at `rate`.
-    balanced: weather and time of day drawn uniformly instead of the world's default mix."""
+    balanced: weather and time of day drawn uniformly instead of the world's default mix; mix: other
+    {"weather_mix": ..., "time_of_day_mix": ...} (e.g. a training run's)."""
     clip_len = math.ceil((frames - 1) / rate * SOURCE_FPS) + 1
     return SyntheticClipDataset(num_clips=count, seed=seed, height=height, width=width, clip_len=clip_len,
-                                scenario=scenario, **(UNIFORM_MIX if balanced else {}))
+                                scenario=scenario, **(UNIFORM_MIX if balanced else dict(mix or {})))
 
 
 def world_samples(seed: int, count: int, height: int, width: int, frames: int, rate: float,
@@ -89,9 +91,9 @@ def world_samples(seed: int, count: int, height: int, width: int, frames: int, r
 
 
 def world_clips(seed: int, count: int, height: int, width: int, frames: int, rate: float,
-                start: int = 0, balanced: bool = False) -> list:
+                start: int = 0, balanced: bool = False, mix: Mapping[str, Mapping[str, float]] | None = None) -> list:
     """The clips start..start+count-1 of the synthetic world `seed`."""
-    clips = world(seed, start + count, height, width, frames, rate, balanced=balanced)
+    clips = world(seed, start + count, height, width, frames, rate, balanced=balanced, mix=mix)
     return [clips[i] for i in range(start, start + count)]
 
 

@@ -135,6 +135,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if args.screenshot:
         headless = spawn_headless()  # ViewerUnavailable names the missing driver: asked for, so not skipped
         sinks.append(rr.GrpcSink(headless[0].url))
+    if args.viewer and args.screenshot:
+        print("--screenshot streams to its own headless viewer; --viewer is ignored")
     elif args.viewer:
         try:
             if not port_open(LOOPBACK, args.viewer_port):
@@ -144,11 +146,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             print(f"no live viewer ({error}); writing {args.out / 'drive.rrd'} only")
     rec.set_sinks(*sinks)
     rec.send_blueprint(drive_blueprint())
-    results = drive(env, dynamics.eval(), rec, steps, args.target_speed, args.curvature, args.gain, args.max_accel,
-                    args.seed)
-    rec.flush()
-    if headless is not None:
-        print(f"live view: {capture_live(*headless, args.screenshot)}")
+    try:
+        results = drive(env, dynamics.eval(), rec, steps, args.target_speed, args.curvature, args.gain,
+                        args.max_accel, args.seed)
+        rec.flush()
+        if headless is not None:
+            print(f"live view: {capture_live(*headless, args.screenshot)}")
+    finally:  # capture_live stops the viewer; a failed episode must not leave it running
+        if headless is not None and headless[1].poll() is None:
+            headless[1].kill()
     atomic_write_text(args.out / "drive.json", json.dumps(results, indent=2))
     print(f"mean |estimated - target| speed over the last half: {results['mean_abs_speed_error_last_half']:.2f} m/s; "
           f"{args.out / 'drive.json'}, {args.out / 'drive.rrd'}")
