@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -150,17 +152,32 @@ def test_closed_loop_drive_writes_its_recording_and_record(tmp_path) -> None:
     assert {"/camera", "/speed/commanded", "/speed/estimated", "/trajectory"} <= entities
 
 
-def test_closed_loop_drive_captures_its_live_view(tmp_path) -> None:
-    """--screenshot streams the episode live to a headless viewer and writes what it shows (issue 25, item 6)."""
+def test_closed_loop_drive_captures_its_live_view(tmp_path, monkeypatch) -> None:
+    """--screenshot streams the episode live to a headless viewer and writes what it shows (issue 25, item 6); the
+    viewer binary (a child of the `rerun` launcher) is stopped afterwards, not left running."""
     import cv2
 
-    from gaia_app.tasks.drive import main
-    from gaia_app.viz.screenshot import ViewerUnavailable
+    from gaia_app.tasks import drive
+    from gaia_app.viz.screenshot import ViewerUnavailable, spawn_headless
 
+    spawned = []
+    monkeypatch.setattr(drive, "spawn_headless", lambda: spawned.append(spawn_headless()) or spawned[-1])
     try:
-        main(["--seconds", "0.5", "--out", str(tmp_path), "--screenshot", str(tmp_path / "live.png")])
+        drive.main(["--seconds", "0.5", "--out", str(tmp_path), "--screenshot", str(tmp_path / "live.png")])
     except ViewerUnavailable as why:
         pytest.skip(f"headless Rerun viewer unavailable here: {why}")
     shot = cv2.imread(str(tmp_path / "live.png"))
     assert max(shot.shape[:2]) == 1280
     assert shot.std() > 20 and len(np.unique(shot.reshape(-1, 3), axis=0)) > 1000  # the camera view is painted
+    group = spawned[0][1].pid  # the viewer's process group: the launcher and the binary
+    alive = [p for p in Path("/proc").iterdir() if p.name.isdigit() and _running_in(p, group)]
+    assert not alive, f"viewer processes left running: {[p.name for p in alive]}"
+
+
+def _running_in(proc: Path, group: int) -> bool:
+    """Whether /proc/<pid> is a live (not zombie) process of the process group `group`."""
+    try:
+        state, _, pgrp = (proc / "stat").read_text().rsplit(")", 1)[1].split()[:3]
+        return int(pgrp) == group and state != "Z"
+    except (OSError, ValueError):
+        return False

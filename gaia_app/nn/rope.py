@@ -4,8 +4,11 @@ Legend: b batch, h heads, s positions, e head width, L tokens per time step.
 
 Every position of one time step gets the same rotation, by its step index p // L: the attention score of two tokens
 then depends on how many steps apart they are, never on where the window starts. A KV cache can therefore drop the
-oldest step when a window slides and keep every other cached key as it is (GAIA-1's learned absolute temporal
-embeddings change all of them). Not in GAIA-1 (§2.1: learned factorised embeddings); an option for new models.
+oldest step when a window slides and keep the other cached keys (GAIA-1's learned absolute temporal embeddings
+change all of them). The first layer's keys are then exactly a re-prefilled window's; deeper layers' keys were
+computed while the dropped step was in view and keep a trace of it, as in Transformer-XL's segment memory, so a
+rolled window approximates the re-prefilled one. Not in GAIA-1 (§2.1: learned factorised embeddings); an option
+for new models.
 """
 
 from __future__ import annotations

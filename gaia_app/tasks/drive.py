@@ -36,7 +36,13 @@ from gaia_app.pipelines.simulator import DrivingSimulator
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.utils.shipped import shipped_folder
 from gaia_app.viz.screenshot import capture_live, spawn_headless
-from gaia_app.viz.viewer import LOOPBACK, ViewerUnavailable, port_open, spawn_viewer
+from gaia_app.viz.viewer import (
+    LOOPBACK,
+    ViewerUnavailable,
+    port_open,
+    spawn_viewer,
+    stop_viewer,
+)
 
 
 def estimated_speed(probe: torch.nn.Module, previous: np.ndarray, frame: np.ndarray) -> float:
@@ -153,8 +159,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         if headless is not None:
             print(f"live view: {capture_live(*headless, args.screenshot)}")
     finally:  # capture_live stops the viewer; a failed episode must not leave it running
-        if headless is not None and headless[1].poll() is None:
-            headless[1].kill()
+        if headless is not None:
+            stop_viewer(headless[1])
     atomic_write_text(args.out / "drive.json", json.dumps(results, indent=2))
     print(f"mean |estimated - target| speed over the last half: {results['mean_abs_speed_error_last_half']:.2f} m/s; "
           f"{args.out / 'drive.json'}, {args.out / 'drive.rrd'}")

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from gaia_app.utils.run_dir import atomic_write_bytes
-from gaia_app.viz.viewer import LOOPBACK, ViewerUnavailable, spawn_viewer
+from gaia_app.viz.viewer import LOOPBACK, ViewerUnavailable, spawn_viewer, stop_viewer
 
 
 def _free_port() -> int:
@@ -25,11 +25,11 @@ def spawn_headless():
     from rerun.experimental import ViewerClient  # experimental API: import where used
 
     port = _free_port()
-    process = spawn_viewer(port, headless=True, hide_welcome_screen=True, detach=False)
+    process = spawn_viewer(port, headless=True, hide_welcome_screen=True)
     try:
         return ViewerClient(f"rerun+http://{LOOPBACK}:{port}/proxy"), process
     except (RuntimeError, TimeoutError, OSError) as err:
-        process.kill()
+        stop_viewer(process)
         raise ViewerUnavailable(f"the headless Rerun viewer did not answer ({err}); without a GPU it needs "
                                 "Mesa's software Vulkan driver: apt-get install mesa-vulkan-drivers") from err
 
@@ -58,8 +58,7 @@ def screenshot_recording(rrd: str | Path, png: str | Path, frame: int | None = N
         viewer.set_time("frame", sequence=timeline.end if frame is None else frame, play_state="paused")
         return _capture(viewer, png, max_size, settle_s)
     finally:  # the client only connected: the viewer process is ours to stop
-        process.kill()
-        process.wait(timeout=10)
+        stop_viewer(process)
 
 
 def capture_live(viewer, process, png: str | Path, max_size: int = 1280, settle_s: float = 3.0) -> Path:
@@ -67,8 +66,7 @@ def capture_live(viewer, process, png: str | Path, max_size: int = 1280, settle_
     try:
         return _capture(viewer, png, max_size, settle_s)
     finally:
-        process.kill()
-        process.wait(timeout=10)
+        stop_viewer(process)
 
 
 def _capture(viewer, png: str | Path, max_size: int, settle_s: float) -> Path:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -56,12 +57,14 @@ def port_open(host: str, port: int, timeout: float = 0.5) -> bool:
 
 
 def spawn_viewer(port: int, bind: str = LOOPBACK, headless: bool = False, hide_welcome_screen: bool = False,
-                 detach: bool = True, wait_s: float = 20.0) -> subprocess.Popen:
+                 wait_s: float = 20.0) -> subprocess.Popen:
     """Start `rerun` serving on bind:port and wait until it accepts connections; ViewerUnavailable when it exits
-    or does not answer within `wait_s`. detach: the viewer outlives this process (a live training view)."""
+    or does not answer within `wait_s`. The viewer outlives this process (a live training view) unless stopped with
+    `stop_viewer`: the `rerun` command is a Python launcher that runs the viewer binary as its child, so the viewer
+    gets its own process group, which `stop_viewer` ends whole (killing the launcher alone leaves the viewer on)."""
     process = subprocess.Popen(viewer_args(port, bind, headless, hide_welcome_screen),
                                env={**os.environ, "RERUN_APP_ONLY": "true"}, stdin=subprocess.DEVNULL,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=detach)
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.monotonic() + wait_s
     while time.monotonic() < deadline:
         if port_open(connect_host(bind), port):
@@ -70,5 +73,14 @@ def spawn_viewer(port: int, bind: str = LOOPBACK, headless: bool = False, hide_w
             raise ViewerUnavailable(f"the Rerun viewer exited at start (code {process.returncode}); without a GPU "
                                     "it needs Mesa's software Vulkan driver: apt-get install mesa-vulkan-drivers")
         time.sleep(0.2)
-    process.kill()
+    stop_viewer(process)
     raise ViewerUnavailable(f"the Rerun viewer did not listen on {bind}:{port} within {wait_s:g} s")
+
+
+def stop_viewer(process: subprocess.Popen) -> None:
+    """End a viewer started by `spawn_viewer`: its launcher and the viewer binary under it."""
+    try:
+        os.killpg(process.pid, signal.SIGKILL)
+    except ProcessLookupError:  # already gone
+        pass
+    process.wait(timeout=10)
