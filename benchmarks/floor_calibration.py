@@ -40,7 +40,6 @@ from gaia_app.tasks.controllability import (
 from gaia_app.utils.shipped import shipped_folder
 
 SCENE = ("time_of_day", "weather")
-REAL = "real clips (the --time-of-day-mix, else the default mix)"
 
 
 def reading(probe, video: torch.Tensor) -> dict[str, dict[str, list[float]]]:
@@ -109,13 +108,14 @@ def main() -> None:
     mix = {"time_of_day_mix": parse_mix(args.time_of_day_mix)} if args.time_of_day_mix else None
     real = probe_clips(world_clips(args.world_seed, args.real_clips, height, width, frames, pipeline.rate, mix=mix),
                        pipeline.rate, frames).frames
-    rows = {REAL: reading(scene, real),
+    real_row = f"real clips ({args.time_of_day_mix or 'default'} mix)"
+    rows = {real_row: reading(scene, real),
             "real clips through the tokenizer": reading(scene, tokenized(pipeline, real))}
     for mode in args.pickers.split(","):
         picker = TokenPicker(mode, k=args.k, p=args.p)
         label = {"top_k": f"top_k k={args.k}", "top_p": f"top_p p={args.p}", "sample": "sample (full)"}.get(mode, mode)
         rows[label] = reading(scene, unprompted(folder, picker, args.rollouts, frames, args.seed, args.batch))
-    reference = rows[REAL]
+    reference = rows[real_row]
     results = {"time_of_day_mix": args.time_of_day_mix, "rollouts": args.rollouts, "seed": args.seed, "world_seed": args.world_seed, "real_clips": args.real_clips,
                "frames": frames, "minutes": round((time.time() - start) / 60, 1), "rows": rows,
                "tv": {name: {attr: total_variation(row[attr], reference[attr]) for attr in SCENE}

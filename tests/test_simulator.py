@@ -88,6 +88,30 @@ def test_with_rotary_time_no_step_re_prefills(pipeline: Gaia1Pipeline) -> None:
     assert max(calls[1:]) <= net.m + 2 + 1  # after the context's prefill: one step's edge at most
 
 
+def test_a_guided_prompted_episode_reproduces_the_guided_open_loop_rollout(pipeline: Gaia1Pipeline) -> None:
+    """reset's guidance option (GAIA-1 §5.1 eq. 3) with a prompt: the episode equals the open-loop rollout of a
+    pipeline built with that guidance, fed the same prompt and actions."""
+    from gaia_app.diffusion.guidance import ClassifierFreeGuidance
+
+    env = DrivingSimulator(pipeline, context_frames=4)
+    env.reset(seed=5, options={"prompt": "It is night.", "guidance": 2.0})
+    context = env.tokens.clone()
+    closed = torch.stack([torch.from_numpy(env.step(a)[4]["tokens"]) for a in ([9.0, 0.0], [11.0, 0.02], [12.0, 0.0])])
+    guided = Gaia1Pipeline(pipeline.tokenizer, pipeline.world_model, pipeline.image_size, pipeline.text_encoder,
+                           guidance=ClassifierFreeGuidance(2.0), rate=pipeline.rate)
+    text = guided.encode_text_batch([["It is night."] * 7])
+    actions = torch.from_numpy(np.stack(env.actions))[None]
+    opened, _ = guided.sample_batch(context[None], 3, text, actions, None, 1, torch.Generator().manual_seed(5))
+    assert torch.equal(closed, opened[0, 4:].cpu())
+    unguided = DrivingSimulator(pipeline, context_frames=4)
+    unguided.reset(seed=5, options={"prompt": "It is night.", "guidance": 0})
+    assert unguided.guidance is None and not torch.equal(
+        torch.from_numpy(unguided.step([9.0, 0.0])[4]["tokens"]), closed[0])
+    for bad in (-1.0, float("nan"), "strong"):
+        with pytest.raises(ValueError, match="reset option guidance"):
+            env.reset(options={"guidance": bad})
+
+
 def test_steps_build_no_autograd_graph_and_keep_their_streams(pipeline: Gaia1Pipeline) -> None:
     """The session's cache and conditions carry no graph (weights loaded for inference still require grad), and a
     step cannot bring streams the episode was not opened with."""

@@ -62,14 +62,17 @@ class WorldModelRolloutPipeline:
         return RolloutOutput(tokens, context.shape[1])
 
     def streams(self, batch: int, steps: int, text: torch.Tensor | None, actions: torch.Tensor | None,
-                negative_text: torch.Tensor | None = None, lead: int = 0) -> tuple[Conditions, Conditions | None]:
-        """The conditioned stream and, when guided, the unconditioned (or negative-prompt) one, for steps
-        lead..steps − 1 of the given (b, steps, ...) streams (the first `lead` only inform action deltas)."""
+                negative_text: torch.Tensor | None = None, lead: int = 0,
+                guided: bool | None = None) -> tuple[Conditions, Conditions | None]:
+        """The conditioned stream and, when guided (by default: when the pipeline has guidance), the unconditioned
+        (or negative-prompt) one, for steps lead..steps − 1 of the given (b, steps, ...) streams (the first `lead`
+        only inform action deltas)."""
+        guided = self.guidance is not None if guided is None else guided
         cond = self.conditions(batch, steps, text, actions)
         uncond = None
-        if self.guidance is not None and negative_text is not None:  # negative prompting (GAIA-1 §5.1)
+        if guided and negative_text is not None:  # negative prompting (GAIA-1 §5.1)
             uncond = self.conditions(batch, steps, negative_text, actions)
-        elif self.guidance is not None:
+        elif guided:
             uncond = self.conditions(batch, steps, text, actions, drop=self.guided_streams)
         if lead:
             cond, uncond = cond.steps(lead, steps), None if uncond is None else uncond.steps(lead, steps)
@@ -81,12 +84,15 @@ class WorldModelRolloutPipeline:
 
     @torch.no_grad()
     def session(self, context: torch.Tensor, steps: int, text: torch.Tensor | None, actions: torch.Tensor | None,
-                generator: torch.Generator | None = None, negative_text: torch.Tensor | None = None) -> SamplingSession:
+                generator: torch.Generator | None = None, negative_text: torch.Tensor | None = None,
+                guidance: ClassifierFreeGuidance | None | str = "pipeline") -> SamplingSession:
         """A rollout kept open for a closed loop: context (b, t0, n) int64 and the first `steps` (≥ t0) steps of its
         text (b, steps, m, e) and actions (b, steps, 2); `extend_session` appends further steps' conditions and
-        `next_frame` samples one step at a time. Guidance is chosen once, by whether the session is prompted."""
-        cond, uncond = self.streams(context.shape[0], steps, text, actions, negative_text)
-        return self.sampler.session(self.net, context, cond, uncond, self.rollout_guidance(text), generator,
+        `next_frame` samples one step at a time. guidance: "pipeline" (the pipeline's, its text scale when
+        prompted), another ClassifierFreeGuidance, or None (unguided); chosen once for the whole session."""
+        guidance = self.rollout_guidance(text) if guidance == "pipeline" else guidance
+        cond, uncond = self.streams(context.shape[0], steps, text, actions, negative_text, guided=guidance is not None)
+        return self.sampler.session(self.net, context, cond, uncond, guidance, generator,
                                     given_streams(text, actions, negative_text))
 
     @torch.no_grad()
@@ -98,7 +104,8 @@ class WorldModelRolloutPipeline:
         given = given_streams(text, actions, negative_text)
         if given != session.given:
             raise ValueError(f"the session was opened with streams {session.given}; these steps bring {given}")
-        session.extend(*self.streams(session.tokens.shape[0], actions.shape[1], text, actions, negative_text, lead))
+        session.extend(*self.streams(session.tokens.shape[0], actions.shape[1], text, actions, negative_text, lead,
+                                     guided=session.guidance is not None))
 
 
 def given_streams(text: torch.Tensor | None, actions: torch.Tensor | None,

@@ -32,6 +32,7 @@ from einops import rearrange
 
 from gaia_app.data.transforms import to_uint8
 from gaia_app.diffusion.ar_sampling import SamplingSession
+from gaia_app.diffusion.guidance import ClassifierFreeGuidance
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.gaia1_inputs import (
     COMMAND_RANGES,
@@ -89,12 +90,26 @@ def checked_action(action: Any, space: Box) -> np.ndarray:
     return value
 
 
+def episode_guidance(value: Any) -> ClassifierFreeGuidance | None | str:
+    """reset option "guidance": "pipeline" (the pipeline's own), a scale ≥ 0 (GAIA-1 §5.1 eq. 3, constant over
+    tokens; 0 or None: unguided) or a ClassifierFreeGuidance."""
+    if value == "pipeline" or value is None or isinstance(value, ClassifierFreeGuidance):
+        return value
+    try:
+        scale = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"reset option guidance={value!r}: expected a scale ≥ 0, None or 'pipeline'") from None
+    if not np.isfinite(scale) or scale < 0:
+        raise ValueError(f"reset option guidance={value!r}: expected a finite scale ≥ 0")
+    return ClassifierFreeGuidance(scale) if scale > 0 else None
+
+
 class DrivingSimulator:
     """Gymnasium-style closed-loop simulator (module docstring).
 
     Args:
         pipeline: a Gaia1Pipeline (e.g. `Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=False)`); its token
-            sampler and guidance are used as they are.
+            sampler is used as it is, and its guidance unless `reset` sets the episode's.
         context_frames: real frames that start an episode (at the world model's rate).
         max_steps: steps before an episode is truncated.
     """
@@ -111,6 +126,7 @@ class DrivingSimulator:
         self.action_space = action_space()
         self.tokens: torch.Tensor | None = None  # (steps, h, w) every frame of the episode so far
         self.session: SamplingSession | None = None  # the world model's sampling state, opened by the first step
+        self.guidance: ClassifierFreeGuidance | None | str = "pipeline"  # the episode's (reset option "guidance")
         self.prompt_features: torch.Tensor | None = None  # (1, 1, m, e) the prompt, encoded once per episode
         self.actions: list[np.ndarray] = []
         self.prompt: str | None = None
@@ -124,11 +140,14 @@ class DrivingSimulator:
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         """Start an episode. options: context ("synthetic": clip `index` of the world `world_seed`; "folder": clip
         `index` of the clip folder `folder`; "none": the first frame is generated from `prompt` alone), prompt (a
-        caption for every step, or None). seed: the token sampler's noise."""
+        caption for every step, or None), guidance (classifier-free guidance scale of the episode, GAIA-1 §5.1; 0
+        for none; by default the pipeline's). seed: the token sampler's noise."""
         options = dict(options or {})
-        unknown = set(options) - {"context", "index", "world_seed", "folder", "prompt"}
+        unknown = set(options) - {"context", "index", "world_seed", "folder", "prompt", "guidance"}
         if unknown:
-            raise ValueError(f"reset options {sorted(unknown)}: expected context, index, world_seed, folder, prompt")
+            raise ValueError(f"reset options {sorted(unknown)}: expected context, index, world_seed, folder, prompt, "
+                             "guidance")
+        self.guidance = episode_guidance(options.get("guidance", "pipeline"))
         context = options.get("context", "synthetic")
         if context not in CONTEXTS:
             raise ValueError(f"reset option context={context!r}: expected one of {CONTEXTS}")
@@ -183,7 +202,8 @@ class DrivingSimulator:
         if self.session is None:
             steps = len(self.tokens) + 1
             context = rearrange(self.tokens, "t h w -> 1 t (h w)")
-            self.session = rollouts.session(context, steps, self.text(steps), self.action_steps(steps), self.generator)
+            self.session = rollouts.session(context, steps, self.text(steps), self.action_steps(steps), self.generator,
+                                            guidance=self.guidance)
         else:
             rollouts.extend_session(self.session, self.action_steps(2), self.text(2))
         new = rearrange(self.session.next_frame()[0], "(h w) -> h w", h=self.pipeline.token_grid[0])
