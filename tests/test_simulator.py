@@ -112,6 +112,28 @@ def test_a_guided_prompted_episode_reproduces_the_guided_open_loop_rollout(pipel
             env.reset(options={"guidance": bad})
 
 
+def test_observations_through_the_video_decoder_at_25_hz(pipeline: Gaia1Pipeline) -> None:
+    """observation='video_decoder': four frames per step (6.25 → 25 Hz), each step's new frame decoded with the
+    frames before it as context; decoding has its own noise, so the episode's tokens are those of tokenizer
+    observations under the same seed."""
+    with_decoder = Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=True, decoder_steps=2)
+    env = DrivingSimulator(with_decoder, observation="video_decoder")
+    plain = DrivingSimulator(pipeline)
+    assert env.observation_space.shape == (4, 64, 112, 3)
+    obs, _ = env.reset(seed=2)
+    plain.reset(seed=2)
+    assert env.observation_space.contains(obs)
+    for action in ([10.0, 0.0], [12.0, 0.02]):
+        obs, *_, info = env.step(action)
+        assert env.observation_space.contains(obs) and obs.std() > 5  # a picture, not a constant
+        assert np.array_equal(info["tokens"], plain.step(action)[4]["tokens"])
+    assert len(env.observer.base) == 6  # 4 context frames and 2 steps decoded at 6.25 Hz
+    with pytest.raises(ValueError, match="needs a pipeline with a video decoder"):
+        DrivingSimulator(pipeline, observation="video_decoder")
+    with pytest.raises(ValueError, match="observation='video'"):
+        DrivingSimulator(pipeline, observation="video")
+
+
 def test_steps_build_no_autograd_graph_and_keep_their_streams(pipeline: Gaia1Pipeline) -> None:
     """The session's cache and conditions carry no graph (weights loaded for inference still require grad), and a
     step cannot bring streams the episode was not opened with."""

@@ -41,8 +41,10 @@ from gaia_app.pipelines.gaia1_inputs import (
     prepare_context,
     synthetic_clip,
 )
+from gaia_app.pipelines.simulator_video import DecoderObserver
 
 CONTEXTS = ("synthetic", "folder", "none")
+OBSERVATIONS = ("tokenizer", "video_decoder")
 
 
 @dataclass(frozen=True)
@@ -112,17 +114,28 @@ class DrivingSimulator:
             sampler is used as it is, and its guidance unless `reset` sets the episode's.
         context_frames: real frames that start an episode (at the world model's rate).
         max_steps: steps before an episode is truncated.
+        observation: "tokenizer" (each step's frame decoded on its own by the tokenizer, (H, W, 3)) or
+            "video_decoder" (the pipeline's video decoder, upsampled `pipeline.upsample` times: the 2^u frames since
+            the previous observation, (2^u, H, W, 3); pipelines/simulator_video.py).
     """
 
     metadata = {"render_modes": ["rgb_array"]}
 
-    def __init__(self, pipeline: Gaia1Pipeline, context_frames: int = 4, max_steps: int = 63):
+    def __init__(self, pipeline: Gaia1Pipeline, context_frames: int = 4, max_steps: int = 63,
+                 observation: str = "tokenizer"):
         if context_frames < 1 or max_steps < 1:
             raise ValueError(f"context_frames={context_frames}, max_steps={max_steps}: expected ≥ 1 each")
+        if observation not in OBSERVATIONS:
+            raise ValueError(f"observation={observation!r}: expected one of {OBSERVATIONS}")
+        if observation == "video_decoder" and pipeline.decoder is None:
+            raise ValueError("observation='video_decoder' needs a pipeline with a video decoder (e.g. "
+                             "Gaia1Pipeline.from_weights(folder, video_decoder=True))")
         self.pipeline, self.context_frames, self.max_steps = pipeline, context_frames, max_steps
-        height, width = pipeline.image_size
-        self.observation_space = Box(np.zeros((height, width, 3), np.uint8), np.full((height, width, 3), 255, np.uint8),
-                                     np.uint8)
+        self.observer = (DecoderObserver(pipeline.decoder, pipeline.upsample) if observation == "video_decoder"
+                         else None)
+        shape = (*pipeline.image_size, 3) if self.observer is None else (self.observer.frames_per_step,
+                                                                         *pipeline.image_size, 3)
+        self.observation_space = Box(np.zeros(shape, np.uint8), np.full(shape, 255, np.uint8), np.uint8)
         self.action_space = action_space()
         self.tokens: torch.Tensor | None = None  # (steps, h, w) every frame of the episode so far
         self.session: SamplingSession | None = None  # the world model's sampling state, opened by the first step
@@ -131,6 +144,7 @@ class DrivingSimulator:
         self.actions: list[np.ndarray] = []
         self.prompt: str | None = None
         self.generator: torch.Generator | None = None
+        self.decoding: torch.Generator | None = None  # the video decoder's noise
         self.steps = 0
         self.last_frame: np.ndarray | None = None
 
@@ -155,6 +169,10 @@ class DrivingSimulator:
         self.prompt_features = None if self.prompt is None else self.pipeline.encode_text_batch([[self.prompt]])
         self.session = None
         self.generator = torch.Generator(device=self.pipeline.device).manual_seed(0 if seed is None else int(seed))
+        # the video decoder draws from its own generator: the token sampling stays that of tokenizer observations
+        self.decoding = torch.Generator(device=self.pipeline.device).manual_seed(1 + (0 if seed is None else int(seed)))
+        if self.observer is not None:
+            self.observer.base = None
         self.steps = 0
         if context == "none":
             if self.prompt is None:
@@ -172,7 +190,7 @@ class DrivingSimulator:
         own = prepared.actions[: self.context_frames] if prepared.actions is not None else None
         self.actions = ([np.asarray(a, np.float32) for a in own] if own is not None
                         else [np.array([DEFAULT_SPEED, 0.0], np.float32)] * self.context_frames)
-        self.last_frame = self.observe(self.tokens[-1])
+        self.last_frame = self.observe()
         return self.last_frame, self.info()
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
@@ -208,7 +226,7 @@ class DrivingSimulator:
             rollouts.extend_session(self.session, self.action_steps(2), self.text(2))
         new = rearrange(self.session.next_frame()[0], "(h w) -> h w", h=self.pipeline.token_grid[0])
         self.tokens = torch.cat([self.tokens, new[None].to(self.tokens.device)])
-        self.last_frame = self.observe(new)
+        self.last_frame = self.observe()
         return self.last_frame
 
     def action_steps(self, steps: int) -> torch.Tensor:
@@ -219,10 +237,15 @@ class DrivingSimulator:
         """(1, steps, m, e) the episode's prompt at every step, or None."""
         return None if self.prompt_features is None else self.prompt_features.expand(-1, steps, -1, -1)
 
-    def observe(self, tokens: torch.Tensor) -> np.ndarray:
-        """Tokens (h, w) → the frame (H, W, 3) uint8, decoded by the tokenizer."""
-        frame = self.pipeline.tokenizer_frames(tokens[None, None])[0, 0]
-        return to_uint8(frame).permute(1, 2, 0).contiguous().numpy()
+    def observe(self) -> np.ndarray:
+        """The newest token frame as the observation: (H, W, 3) uint8 decoded by the tokenizer, or through the video
+        decoder (2^u, H, W, 3), the frames since the previous observation."""
+        if self.observer is None:
+            frame = self.pipeline.tokenizer_frames(self.tokens[-1][None, None])[0, 0]
+            return to_uint8(frame).permute(1, 2, 0).contiguous().numpy()
+        first = self.observer.base is None
+        frames = (self.observer.reset if first else self.observer.step)(self.tokens, self.decoding)
+        return to_uint8(frames.cpu()).permute(0, 2, 3, 1).contiguous().numpy()
 
     def info(self) -> dict[str, Any]:
         return {"step": self.steps, "time_s": self.steps / self.pipeline.rate,
