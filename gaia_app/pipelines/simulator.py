@@ -168,11 +168,12 @@ class DrivingSimulator:
         self.prompt = options.get("prompt")
         self.prompt_features = None if self.prompt is None else self.pipeline.encode_text_batch([[self.prompt]])
         self.session = None
-        self.generator = torch.Generator(device=self.pipeline.device).manual_seed(0 if seed is None else int(seed))
+        seed = 0 if seed is None else int(seed)
+        self.generator = torch.Generator(device=self.pipeline.device).manual_seed(seed)
         # the video decoder draws from its own generator: the token sampling stays that of tokenizer observations
-        self.decoding = torch.Generator(device=self.pipeline.device).manual_seed(1 + (0 if seed is None else int(seed)))
+        self.decoding = torch.Generator(device=self.pipeline.device).manual_seed(seed + 1)
         if self.observer is not None:
-            self.observer.base = None
+            self.observer.clear()
         self.steps = 0
         if context == "none":
             if self.prompt is None:
@@ -243,8 +244,7 @@ class DrivingSimulator:
         if self.observer is None:
             frame = self.pipeline.tokenizer_frames(self.tokens[-1][None, None])[0, 0]
             return to_uint8(frame).permute(1, 2, 0).contiguous().numpy()
-        first = self.observer.base is None
-        frames = (self.observer.reset if first else self.observer.step)(self.tokens, self.decoding)
+        frames = (self.observer.step if self.observer.started else self.observer.reset)(self.tokens, self.decoding)
         return to_uint8(frames.cpu()).permute(0, 2, 3, 1).contiguous().numpy()
 
     def info(self) -> dict[str, Any]:

@@ -47,6 +47,15 @@ class DecoderObserver:
     def frames_per_step(self) -> int:
         return 2**self.upsample
 
+    @property
+    def started(self) -> bool:
+        """Whether this episode's first frames are decoded (`reset` ran since the last `clear`)."""
+        return self.base is not None
+
+    def clear(self) -> None:
+        """Forget the episode: the next observation is a `reset`."""
+        self.base = None
+
     @torch.no_grad()
     def reset(self, tokens: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """The episode's first token frames (t, h, w) → the observation (2^u, 3, H, W) in [-1, 1]."""
