@@ -10,6 +10,7 @@ from gaia_app.data.synthetic import SyntheticClipDataset
 from gaia_app.eval.controllability import (
     contrast_errors,
     contrast_pairs,
+    realised_contrasts,
     action_error,
     action_errors,
     attribute_shares,
@@ -71,6 +72,12 @@ def test_contrast_cancels_a_per_scene_bias_and_charges_ignored_commands_the_comm
     torch.testing.assert_close(contrast_errors(commanded + bias, commanded), torch.zeros(2, 2))
     ignored = commanded[1:2].expand(3, -1, -1, -1) + bias  # every future looks the same
     torch.testing.assert_close(contrast_errors(ignored, commanded), torch.tensor([[5.0, 0.04], [5.0, 0.04]]))
+    # signed: a future that shows half of each command realises half of the commanded difference
+    realised, wanted = realised_contrasts(commanded * 0.5 + bias, commanded)
+    torch.testing.assert_close(wanted, torch.tensor([[5.0, 0.04], [5.0, 0.04]]))
+    torch.testing.assert_close(realised, wanted * 0.5)
+    realised_ignored, _ = realised_contrasts(ignored, commanded)
+    torch.testing.assert_close(realised_ignored, torch.zeros(2, 2))
     with pytest.raises(ValueError, match="every command has the same speed"):
         contrast_pairs(commanded[[0, 0]])
 

@@ -192,6 +192,9 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
         assert row["speed_mae"]["n"] == 2 and row["speed_mae"]["low"] <= row["speed_mae"]["mean"] <= row["speed_mae"]["high"]
         assert np.isfinite(row["curvature_mae"]["mean"]) and np.shape(row["per_command"]) == (2, 2)
         assert row["speed_contrast"]["n"] == 2 and np.isfinite(row["curvature_contrast"]["mean"])
+        # the signed diagnostic: |realised − commanded| averaged over contexts is the contrast error
+        realised = row["realised"]["speed_contrast"]
+        assert realised["n"] == 2 and realised["sd"] >= 0 and np.isfinite(realised["commanded"])
     assert set(results["actions"]["checks"]) == {"speed_contrast", "curvature_contrast"}
     assert results["actions"]["contrasts"] == {"speed_contrast": ["keep/right", "brake/left"],
                                                "curvature_contrast": ["brake/left", "keep/right"]}
@@ -202,6 +205,7 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
     assert text["rows"]["floor"]["time_of_day=night"]["n"] == 3 == text["floor_rollouts"]  # batches of 2, then 1
     table = (tmp_path / "first" / "controllability.md").read_text()
     assert "| model (action-conditioned) |" in table and "| chance | 0.33 |" in table and "probe check" in table
+    assert "| realised difference (diagnostic) | speed (m/s), commanded" in table
     assert json.loads((tmp_path / "first" / "controllability.json").read_text())["actions"]["contexts"] == 2
     # the probes are saved and reused: a second run with them trains nothing and scores the real rows identically
     probes = tmp_path / "first" / "probes"

@@ -163,6 +163,19 @@ def contrast_pairs(commanded: torch.Tensor) -> list[tuple[int, int]]:
     return pairs
 
 
+def realised_contrasts(probed: torch.Tensor, commanded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, 2) probed and (N, 2) commanded differences (high − low) of the horizon-mean speed and curvature per
+    context, for the pairs of `contrast_pairs`; probed, commanded (C, N, s, 2). Signed: how much of a command shows,
+    where `contrast_errors` says only how far off it is."""
+    probed_mean, commanded_mean = probed.mean(dim=2), commanded.mean(dim=2)  # (C, N, 2)
+    pairs = contrast_pairs(commanded)
+
+    def difference(x: torch.Tensor) -> torch.Tensor:
+        return torch.stack([x[high, :, k] - x[low, :, k] for k, (high, low) in enumerate(pairs)], dim=1)
+
+    return difference(probed_mean), difference(commanded_mean)
+
+
 def contrast_errors(probed: torch.Tensor, commanded: torch.Tensor) -> torch.Tensor:
     """(N, 2) per context: |(probed high − probed low) − (commanded high − commanded low)| of the horizon-mean speed
     (high/low: accelerate/brake) and curvature (left/right), the pairs of `contrast_pairs`.
@@ -171,12 +184,8 @@ def contrast_errors(probed: torch.Tensor, commanded: torch.Tensor) -> torch.Tens
     mostly a bias shared by every future of that scene (it misjudges the depth of the road), which the difference
     of two futures of one context cancels; a model that ignores the commands scores the commanded difference.
     """
-    probed_mean, commanded_mean = probed.mean(dim=2), commanded.mean(dim=2)  # (C, N, 2)
-    errors = []
-    for k, (high, low) in enumerate(contrast_pairs(commanded)):
-        wanted = commanded_mean[high, :, k] - commanded_mean[low, :, k]
-        errors.append((probed_mean[high, :, k] - probed_mean[low, :, k] - wanted).abs())
-    return torch.stack(errors, dim=1)
+    realised, wanted = realised_contrasts(probed, commanded)
+    return (realised - wanted).abs()
 
 
 @torch.no_grad()

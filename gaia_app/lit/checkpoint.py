@@ -26,16 +26,16 @@ def load_module(ckpt_path: str | Path, map_location: str | torch.device = "cpu")
     return module.eval()
 
 
-def load_net_weights(net: torch.nn.Module, path: str | Path, what: str) -> None:
-    """Copy the `net.*` weights of a training checkpoint into `net`, in place (strict: same architecture).
+def load_net_weights(net: torch.nn.Module, path: str | Path, what: str, prefix: str = "net.") -> None:
+    """Copy the `{prefix}*` weights of a training checkpoint into `net`, in place (strict: same architecture).
     what: the checkpoint that `model.init_from` should name, for errors (e.g. "a stage-1 tokenizer checkpoint")."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"model.init_from='{path}' does not exist: give {what}")
     state = read_checkpoint(path).get("state_dict", {})
-    weights = {k.removeprefix("net."): v for k, v in state.items() if k.startswith("net.")}
+    weights = {k.removeprefix(prefix): v for k, v in state.items() if k.startswith(prefix)}
     if not weights:
-        raise KeyError(f"model.init_from='{path}' holds no 'net.*' weights: is it {what}?")
+        raise KeyError(f"model.init_from='{path}' holds no '{prefix}*' weights: is it {what}?")
     try:
         missing, unexpected = net.load_state_dict(weights, strict=False)
     except RuntimeError as error:  # tensors of other shapes

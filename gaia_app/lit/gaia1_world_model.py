@@ -20,6 +20,7 @@ import torch
 from torch import nn
 
 from gaia_app.lit.base import GaiaModule
+from gaia_app.lit.checkpoint import load_net_weights
 from gaia_app.models.gaia1.world_model import DEFAULT_DROP, Conditions, WorldModel, next_token_loss
 
 # mode of DEFAULT_DROP → (streams it drops, streams it needs in the batch)
@@ -33,13 +34,17 @@ class WorldModelModule(GaiaModule):
     Args:
         net, optim, sched: see GaiaModule (§4.2: AdamW 1e-4, wd 0.1, betas 0.9/0.95; warm-up, cosine ÷10).
         text_encoder: factory of the text encoder (captions → (b, t, m, e)), or None (text never given).
+        init_from: world-model training checkpoint whose weights (net and text encoder, same preset) start a fresh
+            fit: a fine-tune on other data with its own optimiser and schedule. A resumed run (ckpt_path) keeps its
+            own weights.
     """
 
     def __init__(self, net: Callable[[], WorldModel], optim: Callable, sched: Callable | None = None,
-                 text_encoder: Callable[[], nn.Module] | None = None):
+                 text_encoder: Callable[[], nn.Module] | None = None, init_from: str | None = None):
         super().__init__(net, optim, sched)
         self.text_encoder_factory = text_encoder if callable(text_encoder) else None
         self.text_encoder: nn.Module | None = None
+        self.init_from = init_from
 
     @property
     def world_model(self) -> WorldModel:
@@ -51,6 +56,17 @@ class WorldModelModule(GaiaModule):
         super().configure_model()
         if self.text_encoder is None and self.text_encoder_factory is not None:
             self.text_encoder = self.text_encoder_factory()
+
+    def on_fit_start(self) -> None:
+        if self.init_from and self.trainer.ckpt_path is None:
+            self.load_init_weights()
+
+    def load_init_weights(self) -> None:
+        """Copy the world model (and text encoder) weights of `init_from` in place (optimiser state stays bound)."""
+        what = "a GAIA-1 world-model training checkpoint of the same preset"
+        load_net_weights(self.world_model, self.init_from, what)
+        if self.text_encoder is not None and any(p.numel() for p in self.text_encoder.parameters()):
+            load_net_weights(self.text_encoder, self.init_from, what, prefix="text_encoder.")
 
     def encode_text(self, batch: dict[str, Any]) -> torch.Tensor | None:
         """(b, t, m, e) text embeddings of the batch's captions; None without captions or without an encoder."""

@@ -55,6 +55,7 @@ from gaia_app.eval.controllability import (
     phase_clips,
     probe_clips,
     probed_actions,
+    realised_contrasts,
     save_probes,
     train_probes,
 )
@@ -203,6 +204,10 @@ def error_row(probe, video: torch.Tensor, commanded: torch.Tensor, start: int, c
     per_context = errors.mean(dim=0)
     contrast = contrast_errors(probed, wanted)
     row = {name: mean_interval(contrast[:, k].tolist()).as_dict() for k, name in enumerate(CONTRASTS)}
+    realised, commanded_difference = realised_contrasts(probed, wanted)
+    row["realised"] = {name: mean_interval(realised[:, k].tolist()).as_dict() | {
+        "sd": float(realised[:, k].std()), "commanded": float(commanded_difference[:, k].mean())}
+        for k, name in enumerate(CONTRASTS)}
     row |= {name: mean_interval(per_context[:, k].tolist()).as_dict() for k, name in enumerate(("speed_mae", "curvature_mae"))}
     row["per_command"] = errors.mean(dim=1).tolist()
     return row
@@ -289,6 +294,8 @@ def text_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: torch
 ACTION_ROWS = {"ceiling": "ceiling (real, re-simulated)", "tokenized": "ceiling through the tokenizer (diagnostic)",
                "model": "model (action-conditioned)",
                "floor": "floor (actions dropped)", "reference": "reference (real continuation, commands ignored)"}
+REALISED_ROWS = {"ceiling": "ceiling (real, re-simulated)", "tokenized": "ceiling through the tokenizer",
+                 "model": "model (action-conditioned)", "floor": "floor (actions dropped)"}
 TEXT_ROWS = {"ceiling": "ceiling (real clips)", "tokenized": "ceiling through the tokenizer (diagnostic)",
              "model": "model (text-prompted)", "floor": "floor (no text)"}
 
@@ -303,7 +310,7 @@ def markdown(results: dict[str, Any]) -> str:
              f"horizon-mean speed ({speed}) and curvature ({curvature}) of two futures of one context; a rollout "
              "that ignores its commands scores the commanded difference. MAE: mean |probed − commanded| over all "
              "commands (diagnostic; it carries the probe's per-scene bias).", "",
-             *action_rows_markdown(actions, ACTION_ROWS)]
+             *action_rows_markdown(actions, ACTION_ROWS), "", *realised_rows_markdown(actions)]
     lines += ["", f"Text adherence: share of rollouts ({text['rollouts_per_prompt']} per prompt, generated from the "
               f"prompt alone; {text.get('floor_rollouts', text['rollouts_per_prompt'])} unprompted rollouts for the floor, "
               "shared by every prompt) whose frames mostly read the prompted value; [95 % Wilson interval].", "",
@@ -332,6 +339,22 @@ def action_rows_markdown(actions: dict[str, Any], names: dict[str, str]) -> list
     lines.append("| probe check: ceiling ≤ ½ floor and ≤ ½ reference | " + " | ".join(
         f"{'yes' if checks[m]['probe_reads_it'] else 'NO'} ({checks[m]['ceiling_over_floor']:.2f}, "
         f"{checks[m]['ceiling_over_reference']:.2f})" for m in CONTRASTS) + " | | |")
+    return lines
+
+
+def realised_rows_markdown(actions: dict[str, Any]) -> list[str]:
+    """Diagnostic table: the signed probed difference of the contrasted futures against the commanded one, with
+    its spread over contexts (the error's two sources: a command shown too weakly, and futures that scatter)."""
+    rows = {key: actions["rows"][key].get("realised") for key in REALISED_ROWS}
+    if any(row is None for row in rows.values()):  # results written before the diagnostic existed
+        return []
+    commanded = rows["ceiling"]
+    header = (f"| realised difference (diagnostic) | speed (m/s), commanded {commanded['speed_contrast']['commanded']:.3f}"
+              f" | curvature (1/m), commanded {commanded['curvature_contrast']['commanded']:.4f} |")
+    lines = [header, "|---|---|---|"]
+    for key, name in REALISED_ROWS.items():
+        cells = [f"{fmt(rows[key][m], d)} (sd {rows[key][m]['sd']:.{d}f})" for m, d in zip(CONTRASTS, (3, 4))]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return lines
 
 

@@ -105,3 +105,30 @@ def test_validation_reports_each_trained_mode() -> None:
     assert set(losses) == {"unconditional", "actions", "text"}  # "both" is trained with rate 0
     assert len({round(float(v), 6) for v in losses.values()}) == 3  # each mode sees other conditions
     assert set(actions_only) == {"unconditional", "actions"} and set(bare) == {"unconditional"}
+
+
+def test_init_from_starts_a_fresh_fit_from_a_checkpoints_weights(token_cache: Path, tmp_path: Path) -> None:
+    """model.init_from (the reference recipe's fine-tune, step 3b) loads net and text-encoder weights before the first
+    step; the run keeps its own step count and schedule, and a file that is not such a checkpoint is named."""
+    from gaia_app.lit.checkpoint import load_module
+
+    overrides = ["experiment=gaia1/world_model_tiny", "trainer=tiny", "logger=csv", "extras.print_config=false",
+                 "trainer.limit_val_batches=1", f"data.path={token_cache}", "data.frame_stride=1",
+                 "model.net.vocab_size=16", "model.net.image_tokens=12", "model.net.dim=32", "model.net.depth=1",
+                 "model.net.heads=2", "model.net.kv_heads=1", "trainer.val_check_interval=2"]
+    first = compose_config("train", [*overrides, "trainer.max_steps=2"], tmp_path / "first")
+    train(first)
+    parent = tmp_path / "first" / "checkpoints" / "last.ckpt"
+    assert parent.is_file()
+    trained = load_module(parent)
+    # steps of a vanishing learning rate: what the fine-tune holds is the parent's weights
+    child_cfg = compose_config("train", [*overrides, "trainer.max_steps=2", "model.optim.lr=1e-12",
+                                         f"model.init_from={parent}"], tmp_path / "child")
+    child = train(child_cfg)
+    assert child["trainer"].global_step == 2
+    for name, value in trained.state_dict().items():
+        torch.testing.assert_close(child["model"].state_dict()[name], value, msg=name)
+    bad = compose_config("train", [*overrides, "trainer.max_steps=1", f"model.init_from={tmp_path / 'nope.ckpt'}"],
+                         tmp_path / "bad")
+    with pytest.raises(FileNotFoundError, match="model.init_from=.*nope.ckpt"):
+        train(bad)
