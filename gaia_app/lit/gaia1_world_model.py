@@ -65,6 +65,8 @@ class WorldModelModule(GaiaModule):
         """Copy the world model (and text encoder) weights of `init_from` in place (optimiser state stays bound)."""
         what = "a GAIA-1 world-model training checkpoint of the same preset"
         load_net_weights(self.world_model, self.init_from, what)
+        # pretrained encoders (MiniLM, T5, CLIP) keep their frozen weights outside the module, read from their own
+        # files; only a learned encoder has weights in the checkpoint
         if self.text_encoder is not None and any(p.numel() for p in self.text_encoder.parameters()):
             load_net_weights(self.text_encoder, self.init_from, what, prefix="text_encoder.")
 
