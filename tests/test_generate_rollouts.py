@@ -206,6 +206,10 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
     table = (tmp_path / "first" / "controllability.md").read_text()
     assert "| model (action-conditioned) |" in table and "| chance | 0.33 |" in table and "probe check" in table
     assert "| realised difference (diagnostic) | speed (m/s), commanded" in table
+    discrimination = results["actions"]["discrimination"]
+    assert set(discrimination) == {"speed_contrast", "curvature_contrast"}
+    assert discrimination["speed_contrast"]["n"] == 2 and discrimination["speed_contrast"]["own_nats"] > 0
+    assert "Command discrimination (diagnostic" in table
     assert json.loads((tmp_path / "first" / "controllability.json").read_text())["actions"]["contexts"] == 2
     # the probes are saved and reused: a second run with them trains nothing and scores the real rows identically
     probes = tmp_path / "first" / "probes"
@@ -214,6 +218,31 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
     assert again["actions"]["rows"]["reference"] == rows["reference"]
     assert again["actions"]["rows"]["ceiling"] == rows["ceiling"]
     assert again["actions"]["rows"]["tokenized"] == rows["tokenized"]  # the tokenizer round trip is deterministic
+
+
+def test_command_discrimination_scores_real_futures_teacher_forced(checkpoints, tmp_path: Path) -> None:
+    """future_nats in one forward equals the rollout pipeline's frame-by-frame nats; a command contrasted with
+    itself discriminates nothing, and another one changes the score."""
+    from gaia_app.tasks.controllability import command_discrimination, future_nats
+    from gaia_app.tasks.rollout import load_pipeline
+
+    cfg = compose_config("generate", [f"{k}={v}" for k, v in checkpoints.items() if k != "decoder_ckpt"] + [
+        "extras.print_config=false", *SIZE], tmp_path)
+    pipeline = load_pipeline(cfg, video_decoder=False)
+    h, w = pipeline.token_grid
+    t = pipeline.world_model.frames  # one window: the per-frame path sees the same context
+    g = torch.Generator().manual_seed(0)
+    tokens = torch.randint(0, pipeline.world_model.vocab_size, (2, 2, t, h, w), generator=g)  # (C, N, t, h, w)
+    actions = torch.stack([torch.full((2, t, 2), 3.0), torch.full((2, t, 2), 12.0)])
+    actions[..., 1] = torch.tensor([0.03, -0.03])[:, None, None]
+    nats = future_nats(pipeline, tokens[0], actions[0], t0=2)
+    cond = pipeline.rollouts.conditions(2, t, None, actions[0])
+    per_frame = pipeline.frame_log_perplexity(tokens[0], cond, 2)
+    torch.testing.assert_close(nats, per_frame[:, 2:].mean(dim=1), rtol=1e-4, atol=1e-4)
+    same = command_discrimination(pipeline, tokens, actions, 2, [(0, 0), (1, 1)])
+    assert same["speed_contrast"]["mean"] == 0 and same["curvature_contrast"]["mean"] == 0
+    other = command_discrimination(pipeline, tokens, actions, 2, [(1, 0), (0, 1)])
+    assert abs(other["speed_contrast"]["mean"]) > 0 and other["speed_contrast"]["n"] == 2
 
 
 def test_gallery_strips_and_headless_viewer_screenshot(checkpoints, tmp_path: Path) -> None:

@@ -38,7 +38,9 @@ from typing import Any
 
 import numpy as np
 import torch
+from einops import rearrange
 from omegaconf import DictConfig
+from torch import nn
 
 from gaia_app.data.clip import Clip
 from gaia_app.data.synthetic import SyntheticClipDataset
@@ -186,12 +188,42 @@ def rollout_frames(pipeline: Gaia1Pipeline, context: torch.Tensor | None, frames
     return pipeline.render(sampled, generator)[0]
 
 
-def tokenized(pipeline: Gaia1Pipeline, video: torch.Tensor) -> torch.Tensor:
-    """Real frames (b, t, 3, H, W) → the same frames encoded and decoded by the tokenizer, frame by frame."""
+def tokenized(pipeline: Gaia1Pipeline, video: torch.Tensor, tokens: torch.Tensor | None = None) -> torch.Tensor:
+    """Real frames (b, t, 3, H, W) → the same frames encoded and decoded by the tokenizer, frame by frame
+    (`tokens`: their tokens (b, t, h, w), when already encoded)."""
     if len(video) == 0:
         return video
-    tokens = torch.stack([pipeline.encode(clip) for clip in video])
+    tokens = torch.stack([pipeline.encode(clip) for clip in video]) if tokens is None else tokens
     return pipeline.tokenizer_frames(tokens)
+
+
+@torch.no_grad()
+def future_nats(pipeline: Gaia1Pipeline, tokens: torch.Tensor, actions: torch.Tensor, t0: int) -> torch.Tensor:
+    """(b,) mean nats/token of frames t0.. of `tokens` (b, t, h, w) given the frames before them and `actions`
+    (b, t, 2): teacher-forced, unguided, one forward over the last window (the whole sequence when it fits)."""
+    net = pipeline.world_model
+    flat = rearrange(tokens, "b t h w -> b t (h w)").to(pipeline.device)
+    start, stop = max(0, flat.shape[1] - net.frames), flat.shape[1]
+    cond = pipeline.rollouts.conditions(len(flat), stop, None, actions.float().to(pipeline.device))
+    logits = net(flat[:, start:], cond.steps(start, stop))  # (b, window, n, V)
+    nats = nn.functional.cross_entropy(rearrange(logits, "b w n v -> b v w n"), flat[:, start:], reduction="none")
+    return nats[:, max(t0 - start, 0):].mean(dim=(1, 2)).cpu()
+
+
+def command_discrimination(pipeline: Gaia1Pipeline, real: torch.Tensor, commanded: torch.Tensor, t0: int,
+                           pairs: list[tuple[int, int]]) -> dict[str, Any]:
+    """Do the world model's predictions follow the commands? Per contrasted pair (high, low) and context: nats/token
+    of each of the two real futures given the other command minus given its own, averaged over the two (> 0: the
+    right command explains the real future better; 0: the commands are ignored). Teacher-forced and unguided, so it
+    has none of the rollouts' sampling noise. real (C, N, t, h, w): tokens of the re-simulated futures of C commands;
+    commanded (C, N, t, 2)."""
+    rows = {}
+    for name, (high, low) in zip(CONTRASTS, pairs):
+        own = [future_nats(pipeline, real[i], commanded[i], t0) for i in (high, low)]
+        other = [future_nats(pipeline, real[i], commanded[j], t0) for i, j in ((high, low), (low, high))]
+        gain = (other[0] - own[0] + other[1] - own[1]) / 2
+        rows[name] = mean_interval(gain.tolist()).as_dict() | {"own_nats": float((own[0] + own[1]).mean() / 2)}
+    return rows
 
 
 def error_row(probe, video: torch.Tensor, commanded: torch.Tensor, start: int, commands: int) -> dict[str, Any]:
@@ -227,17 +259,21 @@ def action_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: tor
     repeat = lambda x: x.repeat(len(commands), *[1] * (x.ndim - 1))  # noqa: E731  (command-major, like `commanded`)
     ceiling = torch.cat([resimulate(cfg.context.seed, i % n, height, width, commanded[i].numpy(), t0, rate).frames
                          for i in range(len(commanded))])
+    real_tokens = torch.stack([pipeline.encode(clip) for clip in ceiling])
     videos = {
         "ceiling": ceiling,
-        "tokenized": tokenized(pipeline, ceiling),
+        "tokenized": tokenized(pipeline, ceiling, real_tokens),
         "model": rollout_frames(pipeline, repeat(contexts.frames[:, :t0]), frames, len(commanded), None, commanded, generator),
         "floor": repeat(rollout_frames(pipeline, contexts.frames[:, :t0], frames, n, None, None, generator)),
         "reference": repeat(contexts.frames),
     }
     rows = {name: error_row(probe, video, commanded, t0 + 1, len(commands)) for name, video in videos.items()}
     contrasted = {metric: ["/".join(commands[high]), "/".join(commands[low])] for metric, (high, low) in zip(CONTRASTS, pairs)}
+    per_command = (len(commands), n)
+    discrimination = command_discrimination(pipeline, real_tokens.unflatten(0, per_command),
+                                            commanded.unflatten(0, per_command), t0, pairs)
     return {"commands": [list(cmd) for cmd in commands], "contexts": n, "scored_steps": frames - 1, "rows": rows,
-            "contrasts": contrasted, "checks": action_checks(rows)}
+            "contrasts": contrasted, "checks": action_checks(rows), "discrimination": discrimination}
 
 
 def action_checks(rows: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -311,7 +347,8 @@ def markdown(results: dict[str, Any]) -> str:
              f"horizon-mean speed ({speed}) and curvature ({curvature}) of two futures of one context; a rollout "
              "that ignores its commands scores the commanded difference. MAE: mean |probed − commanded| over all "
              "commands (diagnostic; it carries the probe's per-scene bias).", "",
-             *action_rows_markdown(actions, ACTION_ROWS), "", *realised_rows_markdown(actions)]
+             *action_rows_markdown(actions, ACTION_ROWS), "", *realised_rows_markdown(actions),
+             *discrimination_markdown(actions)]
     lines += ["", f"Text adherence: share of rollouts ({text['rollouts_per_prompt']} per prompt, generated from the "
               f"prompt alone; {text.get('floor_rollouts', text['rollouts_per_prompt'])} unprompted rollouts for the floor, "
               "shared by every prompt) whose frames mostly read the prompted value; [95 % Wilson interval].", "",
@@ -357,6 +394,17 @@ def realised_rows_markdown(actions: dict[str, Any]) -> list[str]:
         cells = [f"{fmt(rows[key][m], d)} (sd {rows[key][m]['sd']:.{d}f})" for m, d in zip(CONTRASTS, (3, 4))]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return lines
+
+
+def discrimination_markdown(actions: dict[str, Any]) -> list[str]:
+    """One diagnostic line: how much better the world model explains the real futures given their own command."""
+    rows = actions.get("discrimination")
+    if not rows:  # results written before the diagnostic existed
+        return []
+    cells = [f"{name.split('_')[0]} {fmt(rows[name], 4)}" for name in CONTRASTS]
+    line = ("Command discrimination (diagnostic; teacher-forced, unguided): nats/token of the real futures given the "
+            "contrasted command minus given their own, > 0 when the commands steer the predictions: ")
+    return ["", line + ", ".join(cells) + "."]
 
 
 def fmt(estimate: dict[str, float], digits: int) -> str:
