@@ -221,8 +221,9 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
 
 
 def test_command_discrimination_scores_real_futures_teacher_forced(checkpoints, tmp_path: Path) -> None:
-    """future_nats in one forward equals the rollout pipeline's frame-by-frame nats; a command contrasted with
-    itself discriminates nothing, and another one changes the score."""
+    """Within one window the per-frame nats come from one forward and equal the frame-by-frame teacher forcing of
+    token_log_perplexity; a command contrasted with itself discriminates nothing, and another one changes the score."""
+    from gaia_app.eval.token_perplexity import token_log_perplexity
     from gaia_app.tasks.controllability import command_discrimination, future_nats
     from gaia_app.tasks.rollout import load_pipeline
 
@@ -237,8 +238,11 @@ def test_command_discrimination_scores_real_futures_teacher_forced(checkpoints, 
     actions[..., 1] = torch.tensor([0.03, -0.03])[:, None, None]
     nats = future_nats(pipeline, tokens[0], actions[0], t0=2)
     cond = pipeline.rollouts.conditions(2, t, None, actions[0])
-    per_frame = pipeline.frame_log_perplexity(tokens[0], cond, 2)
-    torch.testing.assert_close(nats, per_frame[:, 2:].mean(dim=1), rtol=1e-4, atol=1e-4)
+    flat = tokens[0].flatten(2)
+    with torch.no_grad():
+        per_frame = torch.stack([token_log_perplexity(pipeline.world_model, flat[:, :i], flat[:, i], cond.steps(0, i + 1))
+                                 .mean(-1) for i in range(2, t)], dim=1)
+    torch.testing.assert_close(nats, per_frame.mean(dim=1), rtol=1e-4, atol=1e-4)
     same = command_discrimination(pipeline, tokens, actions, 2, [(0, 0), (1, 1)])
     assert same["speed_contrast"]["mean"] == 0 and same["curvature_contrast"]["mean"] == 0
     other = command_discrimination(pipeline, tokens, actions, 2, [(1, 0), (0, 1)])

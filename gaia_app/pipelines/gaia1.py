@@ -222,6 +222,11 @@ class Gaia1Pipeline:
         """(k, t) mean nats/token of each generated frame given its window (NaN for context frames)."""
         flat = rearrange(tokens, "k t h w -> k t (h w)")
         out = torch.full(flat.shape[:2], math.nan)
+        if flat.shape[1] <= self.world_model.frames:  # one window: one causal forward scores every frame alike
+            logits = self.world_model(flat, cond.steps(0, flat.shape[1])).float()  # (k, t, n, V)
+            nats = -logits.log_softmax(-1).gather(-1, flat[..., None])[..., 0]
+            out[:, context_frames:] = nats[:, context_frames:].mean(-1).cpu()
+            return out
         for t in range(context_frames, flat.shape[1]):
             context, window = fit_window(self.world_model, flat[:, :t], cond.steps(0, t + 1))
             out[:, t] = token_log_perplexity(self.world_model, context, flat[:, t], window).mean(-1).cpu()

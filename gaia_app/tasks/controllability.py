@@ -38,9 +38,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from einops import rearrange
 from omegaconf import DictConfig
-from torch import nn
 
 from gaia_app.data.clip import Clip
 from gaia_app.data.synthetic import SyntheticClipDataset
@@ -197,17 +195,11 @@ def tokenized(pipeline: Gaia1Pipeline, video: torch.Tensor, tokens: torch.Tensor
     return pipeline.tokenizer_frames(tokens)
 
 
-@torch.no_grad()
 def future_nats(pipeline: Gaia1Pipeline, tokens: torch.Tensor, actions: torch.Tensor, t0: int) -> torch.Tensor:
     """(b,) mean nats/token of frames t0.. of `tokens` (b, t, h, w) given the frames before them and `actions`
-    (b, t, 2): teacher-forced, unguided, one forward over the last window (the whole sequence when it fits)."""
-    net = pipeline.world_model
-    flat = rearrange(tokens, "b t h w -> b t (h w)").to(pipeline.device)
-    start, stop = max(0, flat.shape[1] - net.frames), flat.shape[1]
-    cond = pipeline.rollouts.conditions(len(flat), stop, None, actions.float().to(pipeline.device))
-    logits = net(flat[:, start:], cond.steps(start, stop))  # (b, window, n, V)
-    nats = nn.functional.cross_entropy(rearrange(logits, "b w n v -> b v w n"), flat[:, start:], reduction="none")
-    return nats[:, max(t0 - start, 0):].mean(dim=(1, 2)).cpu()
+    (b, t, 2): teacher-forced and unguided."""
+    cond = pipeline.rollouts.conditions(len(tokens), tokens.shape[1], None, actions.float().to(pipeline.device))
+    return pipeline.frame_log_perplexity(tokens.to(pipeline.device), cond, t0)[:, t0:].mean(dim=1)
 
 
 def command_discrimination(pipeline: Gaia1Pipeline, real: torch.Tensor, commanded: torch.Tensor, t0: int,
