@@ -105,6 +105,55 @@ def test_fsdp2_shards_on_two_cpu_processes_and_loads_on_one(token_cache: Path, t
     assert rollout.shape == (1, 3, 12) and torch.equal(rollout[:, :2], context)
 
 
+def test_fsdp_sharded_checkpoint_loads_on_one_cpu(token_cache: Path, tmp_path: Path) -> None:
+    """`trainer=fsdp` (Lightning's FSDPStrategy, CUDA only) keeps the weights under "model" in its shards, not under
+    "state_dict" as fsdp2 does; loading such a checkpoint failed (seen on an H200). The layout is rebuilt here as that
+    strategy writes it, from a one-process CPU run."""
+    import torch.distributed.checkpoint as dcp
+
+    one_process = [arg for arg in world_model_args(token_cache, tmp_path) if not arg.startswith("trainer.devices")]
+    run_train([*one_process, "trainer.devices=1"])
+    single_file = only_run_dir(tmp_path) / "checkpoints" / "last.ckpt"
+    checkpoint = torch.load(single_file, map_location="cpu", weights_only=False)
+    sharded = tmp_path / "fsdp_last.ckpt"
+    dcp.save({"model": checkpoint.pop("state_dict")}, checkpoint_id=sharded, no_dist=True)
+    torch.save(checkpoint, sharded / "meta.pt")
+    assert torch.equal(logits_of(load_module(sharded)), logits_of(load_module(single_file)))
+    dcp.save({"optimizer_0": {"step": torch.tensor(1.0)}}, checkpoint_id=tmp_path / "empty", no_dist=True)
+    torch.save(checkpoint, tmp_path / "empty" / "meta.pt")
+    with pytest.raises(KeyError, match="'state_dict' \\(fsdp2\\) or 'model' \\(fsdp\\)"):
+        load_module(tmp_path / "empty")
+
+
+def test_fsdp_clips_gradients_by_their_global_norm(tmp_path: Path) -> None:
+    """`trainer.gradient_clip_val` under `trainer=fsdp`: Lightning's FSDP precision plugin refuses norm clipping, which
+    stopped the world model's first step on an H200; GaiaModule routes it to FSDP's own clip_grad_norm_. FSDP1 runs on
+    CPU in one gloo process here (Lightning itself allows it on CUDA only)."""
+    from functools import partial
+    from types import SimpleNamespace
+
+    import torch.distributed as dist
+    from lightning.pytorch.plugins.precision import FSDPPrecision
+    from torch.distributed.fsdp import FullyShardedDataParallel
+
+    from gaia_app.lit.base import GaiaModule
+
+    module = GaiaModule(net=lambda: nn.Sequential(nn.Linear(4, 8), nn.Linear(8, 1)), optim=partial(torch.optim.SGD, lr=0.1))
+    module.configure_model()
+    dist.init_process_group("gloo", init_method=f"file://{tmp_path / 'rendezvous'}", rank=0, world_size=1)
+    try:
+        wrapped = FullyShardedDataParallel(module, device_id=torch.device("cpu"))
+        module._trainer = SimpleNamespace(model=wrapped, precision_plugin=FSDPPrecision("32-true"), gradient_clip_val=0.5,
+                                          gradient_clip_algorithm=None)
+        wrapped.net(torch.randn(16, 4)).square().sum().mul(1e3).backward()
+        norm = lambda: torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in wrapped.parameters()]))
+        assert norm() > 10
+        module.configure_gradient_clipping(torch.optim.SGD(wrapped.parameters(), lr=0.1), gradient_clip_val=0.5)
+        assert norm() == pytest.approx(0.5, rel=1e-4)
+    finally:
+        dist.destroy_process_group()
+
+
 def stale_parameters(ckpt: Path, module, tmp_path: Path) -> list[str]:
     """Trainable parameters whose AdamW moments in the sharded checkpoint are missing or zero (no gradient)."""
     from torch.distributed.checkpoint.format_utils import dcp_to_torch_save

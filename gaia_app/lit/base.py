@@ -8,6 +8,7 @@ from typing import Any
 import lightning as L
 import torch
 from torch import nn
+from torch.distributed.fsdp import FullyShardedDataParallel
 
 
 # layers whose weight matrices AdamW decays; everything else (embeddings, positions, null tokens, action
@@ -48,6 +49,19 @@ class GaiaModule(L.LightningModule):
         """Build the network once (the hook runs at every stage and must be idempotent)."""
         if self.net is None:
             self.net = self.net_factory()
+
+    def clip_gradients(self, optimizer: torch.optim.Optimizer, gradient_clip_val: float | None = None,
+                       gradient_clip_algorithm: str | None = None) -> None:
+        """Clip as Lightning does (its `configure_gradient_clipping` hook calls this for `trainer.gradient_clip_val`),
+        except under FSDP (`trainer=fsdp`): there each rank holds a shard of the gradients, so their global norm comes
+        from FSDP's own `clip_grad_norm_`. Lightning's FSDP precision plugin refuses norm clipping instead (Lightning
+        issue #19235), which stopped every experiment that clips at its first step."""
+        wrapped = self.trainer.model if self._trainer is not None else None
+        by_norm = (gradient_clip_algorithm or "norm") == "norm"
+        if gradient_clip_val and by_norm and isinstance(wrapped, FullyShardedDataParallel):
+            wrapped.clip_grad_norm_(gradient_clip_val)
+            return
+        super().clip_gradients(optimizer, gradient_clip_val, gradient_clip_algorithm)
 
     def configure_optimizers(self) -> Any:
         self.configure_model()

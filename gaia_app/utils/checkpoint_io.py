@@ -122,7 +122,12 @@ def read_sharded_checkpoint(folder: Path, map_location: str | torch.device = "cp
         dcp_to_torch_save(folder, gathered)
         shards = safe_torch_load(gathered, map_location)
     checkpoint = checked_dict(safe_torch_load(meta, map_location), meta)
-    checkpoint["state_dict"] = shards["state_dict"]
+    # Lightning's ModelParallelStrategy (fsdp2) saves the weights under "state_dict", its FSDPStrategy under "model"
+    weights_key = next((key for key in ("state_dict", "model") if key in shards), None)
+    if weights_key is None:
+        raise KeyError(f"checkpoint folder '{folder}' holds no weights: expected a 'state_dict' (fsdp2) or 'model' "
+                       f"(fsdp) entry in its shards, found {sorted(shards)}")
+    checkpoint["state_dict"] = shards[weights_key]
     return checkpoint
 
 
