@@ -195,6 +195,7 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
         # the signed diagnostic: |realised − commanded| averaged over contexts is the contrast error
         realised = row["realised"]["speed_contrast"]
         assert realised["n"] == 2 and realised["sd"] >= 0 and np.isfinite(realised["commanded"])
+        assert np.mean(realised["per_context"]) == pytest.approx(realised["mean"])
     assert set(results["actions"]["checks"]) == {"speed_contrast", "curvature_contrast"}
     assert results["actions"]["contrasts"] == {"speed_contrast": ["keep/right", "brake/left"],
                                                "curvature_contrast": ["brake/left", "keep/right"]}

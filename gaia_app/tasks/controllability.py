@@ -230,8 +230,10 @@ def error_row(probe, video: torch.Tensor, commanded: torch.Tensor, start: int, c
     row = {name: mean_interval(contrast[:, k].tolist()).as_dict() for k, name in enumerate(CONTRASTS)}
     realised, commanded_difference = realised_contrasts(probed, wanted)
     spread = realised.std(dim=0) if len(realised) > 1 else torch.zeros(2)
+    # per_context: kept so that runs with other sampling seeds can split the spread into within- and between-context
     row["realised"] = {name: mean_interval(realised[:, k].tolist()).as_dict() | {
-        "sd": float(spread[k]), "commanded": float(commanded_difference[:, k].mean())}
+        "sd": float(spread[k]), "commanded": float(commanded_difference[:, k].mean()),
+        "per_context": realised[:, k].tolist()}
         for k, name in enumerate(CONTRASTS)}
     row |= {name: mean_interval(per_context[:, k].tolist()).as_dict() for k, name in enumerate(("speed_mae", "curvature_mae"))}
     row["per_command"] = errors.mean(dim=1).tolist()
