@@ -180,3 +180,31 @@ def test_agent_raster_is_dropped_with_the_agents() -> None:
         dropped = net(x, tau, cond.without("agents"))
         without_raster = plain(x, tau, cond.without("agents"))
     torch.testing.assert_close(dropped, without_raster, atol=1e-6, rtol=0)
+
+
+def test_action_raster_steers_every_token_and_is_dropped_with_the_action() -> None:
+    net, (x, tau), cond = model(action_raster=True), latents(), conditions()
+    left, right = conditions(), conditions()
+    left.actions = torch.tensor([[[10.0, 0.02]] * 3])
+    right.actions = torch.tensor([[[10.0, -0.02]] * 3])
+    keep = net.conditioner.keep_masks(1, x.device)
+    with torch.no_grad():
+        moved = (net.embed(x, left, keep) - net.embed(x, right, keep)).abs().amax(dim=-1)  # (1, t, n)
+    heard = (moved > 1e-4).float()
+    assert heard.mean() > 0.8  # every camera hears the turn, but for near ground clipped or gone in both futures
+    assert heard.unflatten(-1, (3, 8, 14))[..., :4, :].all()  # the upper half of every camera, everywhere
+    plain = model()
+    missing = net.load_state_dict(plain.state_dict(), strict=False).missing_keys
+    assert missing and all(key.startswith("conditioner.action_raster") for key in missing)
+    with torch.no_grad():
+        torch.testing.assert_close(net(x, tau, cond.without("action")), plain(x, tau, cond.without("action")),
+                                   atol=1e-6, rtol=0)
+
+
+def test_fresh_action_raster_starts_with_no_effect() -> None:
+    x, _ = latents()
+    fresh = LatentWorldModel(latent_channels=8, dim=32, depth=2, heads=4, metadata_fields=META, text_dim=16,
+                             action_raster=True)
+    keep = fresh.conditioner.keep_masks(1, x.device)
+    cond = conditions()
+    torch.testing.assert_close(fresh.embed(x, cond, keep), fresh.embed(x, cond.without("action"), keep))

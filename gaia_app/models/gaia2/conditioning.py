@@ -14,6 +14,8 @@ Optionally (`agent_raster`, off in the paper preset) the agent tokens are also p
 token position receives the agent tokens of its camera weighted by how much of its cell their projected box covers.
 Cross-attention must learn where a box lies from its coordinates; the raster says it at the right place, which a
 small model trained briefly needs before agents show (docs/latent_world_model.md, "Agents painted on the grid").
+Optionally (`action_raster`, off in the paper preset) the ego action is painted too, as the flow it causes in each
+cell of each camera (gaia_app/models/gaia2/ego_flow.py).
 Geometry is added to the tokens, not attended: each camera's intrinsics and extrinsics through an MLP
 (one network serves any rig and any number of cameras), timestamps as sine-cosine features (variable
 frame rates).
@@ -32,9 +34,11 @@ import torch
 from einops import rearrange
 from torch import nn
 
+from gaia_app.models.gaia2.ego_flow import ego_motion_flow, step_seconds
 from gaia_app.nn.spacetime import sincos_1d
 
 CONDITIONS = ("action", "agents", "metadata", "text")
+FLOW_UNIT = 2.0  # cells: ego-motion flows are divided by it before the action raster's MLP (most lie within ± 4)
 # agent tokens (b, t, v, N, d), their 2-D boxes (b, t, v, N, 4) and visibility (b, t, v, N) in every camera
 AgentFeatures = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
@@ -155,12 +159,14 @@ class WorldConditioner(nn.Module):
         text_dim: width of the text/image vector (0: not used).
         agent_categories: number of agent categories.
         agent_raster: also paint the agent tokens onto the grid cells their boxes cover (`grid_agents`).
+        action_raster: also paint each step's ego-motion flow onto every cell (`grid_actions`).
         dropout: {condition: probability} of dropping it per sample while training (classifier-free
             guidance; the report: "aggressive" dropout).
     """
 
     def __init__(self, dim: int, metadata_fields: Mapping[str, int], text_dim: int = 0,
-                 agent_categories: int = 8, dropout: Mapping[str, float] | None = None, agent_raster: bool = False):
+                 agent_categories: int = 8, dropout: Mapping[str, float] | None = None, agent_raster: bool = False,
+                 action_raster: bool = False):
         super().__init__()
         self.dim = dim
         self.tau = mlp(dim, dim)
@@ -172,6 +178,7 @@ class WorldConditioner(nn.Module):
         self.agent_category = nn.Embedding(agent_categories, dim)
         self.agent_camera = mlp(4 + 12, dim)
         self.agent_raster = nn.Linear(dim, dim) if agent_raster else None
+        self.action_raster = mlp(2, dim) if action_raster else None
         self.metadata_fields = dict(metadata_fields)
         self.metadata = nn.ModuleDict({name: nn.Embedding(size, dim) for name, size in self.metadata_fields.items()})
         self.metadata_field = nn.Embedding(max(1, len(self.metadata_fields)), dim)
@@ -257,6 +264,16 @@ class WorldConditioner(nn.Module):
         cover = cell_coverage(boxes, grid) * (visible & keep["agents"][:, None, None, None])[..., None, None]
         painted = torch.einsum("btvnhw,btvnd->btvhwd", cover.to(tokens.dtype), tokens)
         return self.agent_raster(painted)
+
+    def grid_actions(self, cond: WorldConditions, grid: tuple[int, int], keep: Mapping[str, torch.Tensor]
+                     ) -> torch.Tensor:
+        """(b, t, v, gh, gw, d): each cell's ego-motion flow under its step's action (ego_flow.ego_motion_flow),
+        embedded (action_raster); zero where the action is dropped. grid (gh, gw) token cells per camera."""
+        steps = cond.actions.shape[1]
+        flow = ego_motion_flow(cond.actions, step_seconds(cond.timestamps, steps), cond.intrinsics, cond.extrinsics,
+                               cond.image_size, grid)
+        painted = self.action_raster(flow / FLOW_UNIT)
+        return painted * keep["action"][:, None, None, None, None, None].to(painted.dtype)
 
     def agent_features(self, cond: WorldConditions) -> AgentFeatures:
         """Agent tokens (b, t, v, N, d), their boxes (b, t, v, N, 4) and visibility (b, t, v, N) in every camera."""

@@ -38,7 +38,8 @@ class LatentWorldModel(nn.Module):
         latent_channels: C of the video tokenizer (paper 64).
         patch_size: p, latent positions per token side (1: one token per latent position).
         dim, depth, heads, mlp_ratio: transformer (paper 22 layers, ≈ 8.4B parameters).
-        metadata_fields, text_dim, agent_categories, condition_dropout, agent_raster: see WorldConditioner.
+        metadata_fields, text_dim, agent_categories, condition_dropout, agent_raster, action_raster: see
+            WorldConditioner.
         checkpointing: activation checkpointing of the blocks.
     """
 
@@ -47,12 +48,12 @@ class LatentWorldModel(nn.Module):
     def __init__(self, latent_channels: int = 64, patch_size: int = 1, dim: int = 512, depth: int = 8, heads: int = 8,
                  mlp_ratio: float = 4.0, metadata_fields: Mapping[str, int] | None = None, text_dim: int = 0,
                  agent_categories: int = 8, condition_dropout: Mapping[str, float] | None = None,
-                 checkpointing: bool = False, agent_raster: bool = False):
+                 checkpointing: bool = False, agent_raster: bool = False, action_raster: bool = False):
         super().__init__()
         self.latent_channels, self.patch, self.dim = latent_channels, patch_size, dim
         self.patch_in = nn.Linear(latent_channels * patch_size**2, dim)
         self.conditioner = WorldConditioner(dim, metadata_fields or {}, text_dim, agent_categories,
-                                            condition_dropout, agent_raster)
+                                            condition_dropout, agent_raster, action_raster)
         self.blocks = nn.ModuleList(AdaLNSpaceTimeBlock(dim, heads, dim, mlp_ratio) for _ in range(depth))
         self.norm_out = nn.LayerNorm(dim, elementwise_affine=False)
         self.modulation_out = nn.Sequential(nn.SiLU(), nn.Linear(dim, 2 * dim))
@@ -74,6 +75,8 @@ class LatentWorldModel(nn.Module):
         zeroed = [self.modulation_out[-1], self.patch_out]
         if self.conditioner.agent_raster is not None:  # agents start with no effect, as through the cross-attention
             zeroed.append(self.conditioner.agent_raster)
+        if self.conditioner.action_raster is not None:  # likewise the action's flow
+            zeroed.append(self.conditioner.action_raster[-1])
         for layer in zeroed:
             nn.init.zeros_(layer.weight)
             nn.init.zeros_(layer.bias)
@@ -96,7 +99,8 @@ class LatentWorldModel(nn.Module):
     def embed(self, x: torch.Tensor, cond: WorldConditions, keep: Mapping[str, torch.Tensor],
               agents: AgentFeatures | None = None) -> torch.Tensor:
         """Latents (b, v, t, C, h, w) → tokens (b, t, n, d) with position, camera and time embeddings, and the
-        agents (the conditioner's `agent_features`) painted on the grid when it has agent_raster and `keep` keeps them."""
+        agents (the conditioner's `agent_features`) painted on the grid when it has agent_raster and `keep` keeps them,
+        and each step's ego-motion flow when it has action_raster and the action is active."""
         b, v, t, _, h, w = x.shape
         p = self.patch
         tokens = self.patch_in(rearrange(x, "b v t c (h p) (w q) -> b t v (h w) (p q c)", p=p, q=p))
@@ -107,6 +111,9 @@ class LatentWorldModel(nn.Module):
         if agents is not None and self.conditioner.agent_raster is not None:
             painted = self.conditioner.grid_agents(agents, (h // p, w // p), keep)
             tokens = tokens + rearrange(painted, "b t v h w d -> b t v (h w) d")
+        if self.conditioner.action_raster is not None and cond.active("action"):
+            flow = self.conditioner.grid_actions(cond, (h // p, w // p), keep)
+            tokens = tokens + rearrange(flow, "b t v h w d -> b t v (h w) d")
         return rearrange(tokens, "b t v n d -> b t (v n) d")
 
     def forward(self, x: torch.Tensor, tau: torch.Tensor, cond: WorldConditions,
