@@ -131,6 +131,8 @@ def test_bad_gaia2_settings_are_named(checkpoints, tmp_path: Path) -> None:
                                              f"world_model_ckpt={checkpoints['tokenizer']}"], tmp_path / "e"))
     with pytest.raises(ValueError, match="inpaint.cameras"):
         run(checkpoints, tmp_path / "f", "inpaint", "model.inpaint.region=box", "model.inpaint.cameras=[rear]")
+    with pytest.raises(ValueError, match="model.evaluate.action_agents='boxes'"):
+        run(checkpoints, tmp_path / "h", "evaluate", "model.evaluate.action_agents=boxes")
     with pytest.raises(ValueError, match="not a trainable model"):
         train(compose_config("train", ["model=gaia2", "extras.print_config=false"], tmp_path / "g"))
     assert not (tmp_path / "a" / "results.json").exists()

@@ -15,6 +15,8 @@ Legend: N scenes, C commands, f = model.steps · temporal frames (front camera),
     tokenized = the ceiling encoded and decoded by the tokenizer (a diagnostic);
     model     = the world model continuing the scene's t0 context frames under the commanded actions;
     floor     = the same continuation with the action condition dropped (same noise as the model's futures);
+    both with the agent boxes dropped (`model.evaluate.action_agents=dropped`, the default) or the real continuation's
+    (`real`: boxes that move with the scene's own ego motion, not the command's, so they contradict it);
     reference = the real continuation under the scene's own policy, scored against the command.
 - Scores (tasks/controllability.error_row): the contrast errors of speed (accelerate vs brake) and curvature (left vs
   right) and the MAE, 95 % intervals over scenes; the target model ≤ floor − ½ (floor − ceiling) and the probe
@@ -42,9 +44,19 @@ from gaia_app.models.probes import InverseDynamicsProbe
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline, with_labels
 from gaia_app.tasks.controllability import CONTRASTS, UNIFORM_MIX, action_checks, action_rows_markdown, commanded_actions, error_row
 
+# the agents the model and floor rows see: the real continuation's boxes follow the scene's own ego motion, so they
+# contradict the command (and the model may follow them instead); dropped leaves the action alone to steer
+AGENT_CHOICES = ("dropped", "real")
 ROWS = {"ceiling": "ceiling (re-simulated with the commands)", "tokenized": "tokenized ceiling (diagnostic)",
         "model": "model, commanded actions", "floor": "floor (actions dropped)",
         "reference": "reference (real continuation)"}
+
+
+def check_action_agents(cfg: DictConfig) -> None:
+    """Raise ValueError naming model.evaluate.action_agents unless it is one of AGENT_CHOICES."""
+    value = cfg.model.evaluate.action_agents
+    if value not in AGENT_CHOICES:
+        raise ValueError(f"model.evaluate.action_agents={value!r}: expected one of {AGENT_CHOICES}")
 
 
 def rig_world(cfg: DictConfig, seed: int, count: int, frames: int, **overrides: Any) -> SyntheticClipDataset:
@@ -73,6 +85,7 @@ def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Sy
                  probe: InverseDynamicsProbe, generator: torch.Generator) -> dict[str, Any]:
     """Rows, targets and probe checks of the action-adherence table (module docstring)."""
     g = cfg.model
+    check_action_agents(cfg)
     first, frames = g.context_steps * pipeline.temporal, g.steps * pipeline.temporal
     rate = float(scenes[0][0].clip.fps)
     contexts = probe_clips([sample.clip for sample, _ in scenes], rate, frames)
@@ -92,6 +105,7 @@ def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Sy
         target = with_labels(clip, first, actions[first:])
         context, _ = pipeline.window(target, 0, g.context_steps)
         _, cond = pipeline.window(target, 0, g.steps)
+        cond = cond.without("agents") if g.evaluate.action_agents == "dropped" else cond
         videos["model"].append(continuation(pipeline, context, cond, g.steps - g.context_steps, noise[i]))
         if k < n:  # the floor ignores the command: one continuation per scene, scored against every command
             videos["floor"].append(continuation(pipeline, context, cond.without("action"), g.steps - g.context_steps, noise[i]))
@@ -99,7 +113,8 @@ def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Sy
     videos["reference"] = list(contexts.frames) * len(commands)
     rows = {name: error_row(probe, torch.stack(video), commanded, first + 1, len(commands)) for name, video in videos.items()}
     contrasted = {metric: ["/".join(commands[high]), "/".join(commands[low])] for metric, (high, low) in zip(CONTRASTS, pairs)}
-    return {"scenes": n, "commands": [list(cmd) for cmd in commands], "context_frames": first,
+    return {"scenes": n, "commands": [list(cmd) for cmd in commands], "agents": g.evaluate.action_agents,
+            "context_frames": first,
             "scored_steps": frames - first - 1, "rows": rows, "contrasts": contrasted, "checks": action_checks(rows)}
 
 
@@ -114,7 +129,7 @@ def markdown(actions: dict[str, Any]) -> list[str]:
     speed, curvature = (" vs ".join(actions["contrasts"][m]) for m in CONTRASTS)
     return [f"Action adherence (front camera, {actions['scenes']} held-out scenes × {len(actions['commands'])} commands "
              f"({', '.join('/'.join(c) for c in actions['commands'])}), {actions['context_frames']} context frames, "
-             f"{actions['scored_steps']} scored steps each; ± 95 % interval over scenes. Contrast error: |probed "
+             f"{actions['scored_steps']} scored steps each, agent boxes {actions['agents']}; ± 95 % interval over scenes. Contrast error: |probed "
              f"difference − commanded difference| of the horizon-mean speed ({speed}) and curvature ({curvature}) of "
              "two futures of one scene; MAE: mean |probed − commanded| (diagnostic)", "",
              *action_rows_markdown(actions, ROWS)]

@@ -241,6 +241,7 @@ def gaia2_evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     if e.contexts < 1:
         raise ValueError(f"model.evaluate.contexts={e.contexts}: expected at least 1")
     check_metrics(cfg)
+    gaia2_actions.check_action_agents(cfg)
     pipeline = load_gaia2(cfg)
     frames = cfg.model.steps * pipeline.temporal
     segmentation, dynamics, fit = train_probes_for(cfg, frames)

@@ -1,0 +1,89 @@
+"""Teacher-forced condition gains of the GAIA-2 world model (gaia_app/eval/flow_gain.py)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gaia_app.data.clip import ClipError
+from gaia_app.data.latent_cache import LatentClip, write_latent_clip
+from gaia_app.data.synthetic.labels import AgentBoxes
+from gaia_app.data.synthetic.rig import CameraSpec, build_rig
+from gaia_app.diffusion.flow_matching import velocity_target
+from gaia_app.eval.flow_gain import (
+    condition_gain_report,
+    every_window,
+    flow_losses,
+    swapped_actions,
+)
+from gaia_app.models.gaia2.conditioning import batch_conditions
+from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
+
+META = {"weather": 6, "time_of_day": 5}
+
+
+def cache(root: Path, clips: int = 3, steps: int = 5) -> Path:
+    """A latent cache split of `clips` 3-camera clips, each driving at its own speed and curvature."""
+    rig = [CameraSpec(c.name, c.intrinsics, c.extrinsics, c.width, c.height) for c in build_rig(3, 64, 112)]
+    rng = np.random.default_rng(0)
+    frames = steps * 4
+    for i in range(clips):
+        write_latent_clip(root, LatentClip(
+            clip_id=f"clip_{i}", mean=rng.normal(size=(3, steps, 8, 8, 14)).astype(np.float32),
+            logvar=np.full((3, steps, 8, 8, 14), -6, np.float32), temporal_downsampling=4, fps=12.5,
+            image_size=(64, 112), timestamps=np.arange(frames) / 12.5, cameras=rig,
+            meta={"weather": "rain", "time_of_day": "day"},
+            actions=np.tile(np.float32([5 + 3 * i, 0.02 * (i - 1)]), (frames, 1)),
+            agents=[AgentBoxes([[12.0, 0.5, 0.8]], [[4.5, 1.8, 1.6]], [0.0], [0], [1]) for _ in range(frames)]))
+    return root
+
+
+def net() -> LatentWorldModel:
+    """A small model with every weight perturbed (no zero-initialised path hides a condition)."""
+    torch.manual_seed(0)
+    model = LatentWorldModel(latent_channels=8, dim=32, depth=1, heads=4, metadata_fields=META, agent_raster=True,
+                             action_raster=True)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return model.eval()
+
+
+def test_every_window_takes_every_start_of_every_clip(tmp_path: Path) -> None:
+    batch = every_window(cache(tmp_path / "val"), 4, list(META))
+    assert batch["mean"].shape == (3 * 2, 3, 4, 8, 8, 14)  # 5 steps → starts 0 and 1, three clips
+    with pytest.raises(ClipError, match="no finished clip folders"):
+        every_window(tmp_path / "empty", 4, list(META))
+
+
+def test_flow_losses_are_the_velocity_error_of_the_generated_steps_under_shared_noise(tmp_path: Path) -> None:
+    batch = every_window(cache(tmp_path / "val"), 4, list(META))
+    x, cond, model = batch["mean"], batch_conditions(batch), net()
+    losses = flow_losses(model, x, {"a": cond, "b": cond, "dropped": cond.without("action")}, context=2,
+                         taus=(0.5,), draws=1, seed=3)
+    torch.testing.assert_close(losses["a"], losses["b"])  # the same noise for every variant
+    noise = torch.randn(x.shape, generator=torch.Generator().manual_seed(3))
+    times = torch.full((x.shape[0], 4), 0.5)
+    times[:, :2] = 1.0
+    step = times[:, None, :, None, None, None]
+    with torch.no_grad():
+        direct = (model(step * x + (1 - step) * noise, times, cond) - velocity_target(x, noise))[:, :, 2:].pow(2)
+    torch.testing.assert_close(losses["a"], direct.mean(dim=(1, 2, 3, 4, 5)))
+    assert not torch.allclose(losses["a"], losses["dropped"])  # the actions reach the loss
+    with pytest.raises(ValueError, match="context"):
+        flow_losses(model, x, {"a": cond}, context=4)
+
+
+def test_report_gives_gains_and_discrimination_with_intervals(tmp_path: Path) -> None:
+    batch = every_window(cache(tmp_path / "val"), 4, list(META))
+    report = condition_gain_report(net(), batch, latent_scale=0.5, context=2)
+    assert report["windows"] == 6
+    assert report["gain_over_neither"]["neither"]["mean"] == 0
+    for row in [*report["gain_over_neither"].values(), *report["action_discrimination"].values()]:
+        assert row["low"] <= row["mean"] <= row["high"] and row["n"] == 6
+    assert report["action_discrimination"]["with agents"]["mean"] != 0  # swapped actions change the loss
+    with pytest.raises(ValueError, match="two windows"):
+        swapped_actions(batch_conditions(every_window(cache(tmp_path / "one", clips=1, steps=4), 4, list(META))))
