@@ -68,6 +68,23 @@ def test_cached_latents_are_the_tokenizers_posterior(ckpt: Path, tmp_path: Path)
     np.testing.assert_allclose(clip.logvar, posterior.logvar[0].numpy(), atol=2e-2, rtol=1e-2)
 
 
+def test_clips_read_by_worker_processes_give_the_same_cache(ckpt: Path, tmp_path: Path) -> None:
+    """workers=2 renders the clips in background processes: same clips, same order, same latents as workers=0."""
+    here = run_encode(ckpt, tmp_path / "g1", tmp_path / "here", "splits=[train]", "max_clips=4")
+    ahead = run_encode(ckpt, tmp_path / "g2", tmp_path / "ahead", "splits=[train]", "max_clips=4", "workers=2")
+    assert here["train"]["written"] == ahead["train"]["written"] == 4
+    folders = find_latent_clips(tmp_path / "here" / "train")
+    assert [f.name for f in folders] == [f.name for f in find_latent_clips(tmp_path / "ahead" / "train")]
+    for folder in folders:
+        np.testing.assert_array_equal(np.load(folder / "mean.npy"),
+                                      np.load(tmp_path / "ahead" / "train" / folder.name / "mean.npy"))
+
+
+def test_encode_refuses_a_negative_worker_count(ckpt: Path, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="workers: expected a non-negative integer, got -1"):
+        run_encode(ckpt, tmp_path / "g1", tmp_path / "latents", "splits=[train]", "workers=-1")
+
+
 def test_encode_resumes_and_skips_finished_clips(ckpt: Path, tmp_path: Path) -> None:
     out = tmp_path / "latents"
     run_encode(ckpt, tmp_path / "g1", out, "max_clips=3", "splits=[train]")

@@ -119,8 +119,10 @@ class LatentCacheDataModule(L.LightningDataModule):
         self.val_set = LatentWindows(find_latent_clips(self.path / "val"), self.steps, encoder, random_window=False)
 
     def train_dataloader(self) -> DataLoader:
+        # persistent workers: an epoch is one window per clip, so short that re-forking workers each epoch shows
         return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, num_workers=self.num_workers,
-                          drop_last=len(self.train_set) >= self.batch_size, collate_fn=collate_latent_windows)
+                          drop_last=len(self.train_set) >= self.batch_size, collate_fn=collate_latent_windows,
+                          persistent_workers=self.num_workers > 0)
 
     def val_dataloader(self) -> DataLoader:
         return DataLoader(self.val_set, batch_size=self.batch_size, num_workers=self.num_workers,

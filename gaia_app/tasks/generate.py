@@ -121,19 +121,36 @@ def reconstruct_video(cfg: DictConfig, tokenizer: VideoTokenizer, run_dir: Path)
 
 
 def cache_split(clips: Any, out_dir: Path, max_clips: int | None, desc: str, done: Callable[[Any], bool],
-                write: Callable[[Any], None]) -> dict[str, int]:
+                write: Callable[[Any], None], workers: int = 0) -> dict[str, int]:
     """Write the clips of one split with `write(clip)`; clips for which `done(clip)` holds are skipped (resumable:
-    each cache writes its marker file last and atomically)."""
+    each cache writes its marker file last and atomically). `workers` > 0 reads (renders, decodes) the clips in that
+    many background processes, in order, while this one encodes and writes."""
     counts = {"written": 0, "skipped": 0}
     n = len(clips) if max_clips is None else min(max_clips, len(clips))
-    for i in tqdm(range(n), desc=desc):
-        clip = clips[i]
+    for clip in tqdm(read_in_order(clips, n, workers), total=n, desc=desc):
         if done(clip):
             counts["skipped"] += 1
             continue
         write(clip)
         counts["written"] += 1
     return counts
+
+
+def read_in_order(clips: Any, n: int, workers: int) -> Any:
+    """The first `n` clips of `clips`, read here (workers=0) or by a DataLoader's worker processes, in order."""
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+        raise ValueError(f"workers: expected a non-negative integer, got {workers!r}")
+    if workers == 0:
+        return (clips[i] for i in range(n))
+    subset = torch.utils.data.Subset(clips, range(n))
+    # batch_size=None with an identity collate hands each clip over untouched; the loader keeps the index order
+    return torch.utils.data.DataLoader(subset, batch_size=None, num_workers=workers, prefetch_factor=4,
+                                       collate_fn=as_read)
+
+
+def as_read(clip: Any) -> Any:
+    """A DataLoader collate that changes nothing (module-level, so worker processes can pickle it)."""
+    return clip
 
 
 def cache_splits(cfg: DictConfig, name: str, make_writers: Callable[[Any, Path], tuple[Callable, Callable]],
@@ -152,7 +169,8 @@ def cache_splits(cfg: DictConfig, name: str, make_writers: Callable[[Any, Path],
         out_dir = Path(cfg.out_dir) / split
         prepare_cache(out_dir, made, overwrite=bool(cfg.overwrite))
         done, write = make_writers(datamodule, out_dir)
-        results[split] = {**cache_split(splits[split], out_dir, cfg.max_clips, f"{name} {split}", done, write),
+        results[split] = {**cache_split(splits[split], out_dir, cfg.max_clips, f"{name} {split}", done, write,
+                                              cfg.workers),
                           "out_dir": str(out_dir)}
     return results
 

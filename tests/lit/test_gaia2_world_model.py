@@ -15,6 +15,7 @@ from gaia_app.data.latent_cache import LatentClip, find_latent_clips, write_late
 from gaia_app.data.latent_windows import LatentCacheDataModule, LatentWindows, collate_latent_windows
 from gaia_app.data.metadata import MetadataEncoder
 from gaia_app.data.synthetic.rig import build_rig
+from gaia_app.encoders.text import LearnedTextEncoder
 from gaia_app.lit.gaia2_world_model import LatentWorldModelModule, batch_conditions
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
 
@@ -63,9 +64,9 @@ def test_windows_carry_per_step_conditions(cache: Path) -> None:
     assert cond.active("agents") and cond.active("metadata") and cond.image_size == (32, 48)
 
 
-def make_module(**kw) -> LatentWorldModelModule:
+def make_module(net=None, **kw) -> LatentWorldModelModule:
     torch.manual_seed(0)
-    net = functools.partial(LatentWorldModel, latent_channels=8, dim=48, depth=2, heads=4, metadata_fields=META)
+    net = net or functools.partial(LatentWorldModel, latent_channels=8, dim=48, depth=2, heads=4, metadata_fields=META)
     return LatentWorldModelModule(net=net, optim=functools.partial(torch.optim.AdamW, lr=2e-3), **kw)
 
 
@@ -115,6 +116,30 @@ def test_context_draws_cover_scratch_and_prediction() -> None:
     torch.manual_seed(0)
     k = module.draw_context(2000, 4, torch.device("cpu"))
     assert 0.4 < (k == 0).float().mean() < 0.6 and set(k.tolist()) == {0, 1, 2, 3}
+
+
+def test_init_from_carries_a_learned_text_encoder(cache: Path, tmp_path: Path) -> None:
+    """A trainable text encoder is part of what the net learned to read: init_from starts it from the checkpoint too,
+    so the fine-tune's first step sees the same caption embeddings as the pretrained run's last."""
+    text = functools.partial(LearnedTextEncoder, dim=16, tokens=4)
+    net = functools.partial(LatentWorldModel, latent_channels=8, dim=48, depth=2, heads=4, metadata_fields=META,
+                            text_dim=16)
+    pretrained = make_module(net=net, text_encoder=text)
+    trainer = L.Trainer(max_steps=3, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)
+    trainer.fit(pretrained, datamodule(cache))
+    trainer.save_checkpoint(tmp_path / "pretrained.ckpt")
+    seen = {}
+
+    class Probe(L.Callback):
+        def on_train_batch_start(self, trainer, module, batch, batch_idx) -> None:
+            seen.setdefault("first", module.text_encoder.embedding.weight.detach().clone())
+
+    torch.manual_seed(1)
+    tuned = make_module(net=net, text_encoder=text, init_from=str(tmp_path / "pretrained.ckpt"))
+    L.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
+              enable_model_summary=False, limit_val_batches=0, callbacks=[Probe()]).fit(tuned, datamodule(cache))
+    torch.testing.assert_close(seen["first"], pretrained.text_encoder.embedding.weight)
 
 
 def test_init_from_starts_a_fresh_fit_from_another_runs_net(cache: Path, tmp_path: Path) -> None:
