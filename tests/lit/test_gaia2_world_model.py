@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 import numpy as np
@@ -12,7 +14,11 @@ import torch
 
 from gaia_app.data.clip import AgentBoxes, CameraSpec
 from gaia_app.data.latent_cache import LatentClip, find_latent_clips, write_latent_clip
-from gaia_app.data.latent_windows import LatentCacheDataModule, LatentWindows, collate_latent_windows
+from gaia_app.data.latent_windows import (
+    LatentCacheDataModule,
+    LatentWindows,
+    collate_latent_windows,
+)
 from gaia_app.data.metadata import MetadataEncoder
 from gaia_app.data.synthetic.rig import build_rig
 from gaia_app.encoders.text import LearnedTextEncoder
@@ -118,6 +124,27 @@ def test_context_draws_cover_scratch_and_prediction() -> None:
     assert 0.4 < (k == 0).float().mean() < 0.6 and set(k.tolist()) == {0, 1, 2, 3}
 
 
+def pretrain(module: LatentWorldModelModule, cache: Path, path: Path) -> None:
+    """Three steps of `module`, saved as a training checkpoint at `path`."""
+    trainer = L.Trainer(max_steps=3, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)
+    trainer.fit(module, datamodule(cache))
+    trainer.save_checkpoint(path)
+
+
+def at_first_step(module: LatentWorldModelModule, cache: Path, read: Callable[[LatentWorldModelModule], Any]) -> Any:
+    """read(module) at the start of the first training batch of a one-step fit (after init_from is applied)."""
+    seen = {}
+
+    class Probe(L.Callback):
+        def on_train_batch_start(self, trainer, module, batch, batch_idx) -> None:
+            seen.setdefault("first", read(module))
+
+    L.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
+              enable_model_summary=False, limit_val_batches=0, callbacks=[Probe()]).fit(module, datamodule(cache))
+    return seen["first"]
+
+
 def test_init_from_carries_a_learned_text_encoder(cache: Path, tmp_path: Path) -> None:
     """A trainable text encoder is part of what the net learned to read: init_from starts it from the checkpoint too,
     so the fine-tune's first step sees the same caption embeddings as the pretrained run's last."""
@@ -125,43 +152,23 @@ def test_init_from_carries_a_learned_text_encoder(cache: Path, tmp_path: Path) -
     net = functools.partial(LatentWorldModel, latent_channels=8, dim=48, depth=2, heads=4, metadata_fields=META,
                             text_dim=16)
     pretrained = make_module(net=net, text_encoder=text)
-    trainer = L.Trainer(max_steps=3, accelerator="cpu", logger=False, enable_checkpointing=False,
-                        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)
-    trainer.fit(pretrained, datamodule(cache))
-    trainer.save_checkpoint(tmp_path / "pretrained.ckpt")
-    seen = {}
-
-    class Probe(L.Callback):
-        def on_train_batch_start(self, trainer, module, batch, batch_idx) -> None:
-            seen.setdefault("first", module.text_encoder.embedding.weight.detach().clone())
-
+    pretrain(pretrained, cache, tmp_path / "pretrained.ckpt")
     torch.manual_seed(1)
     tuned = make_module(net=net, text_encoder=text, init_from=str(tmp_path / "pretrained.ckpt"))
-    L.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
-              enable_model_summary=False, limit_val_batches=0, callbacks=[Probe()]).fit(tuned, datamodule(cache))
-    torch.testing.assert_close(seen["first"], pretrained.text_encoder.embedding.weight)
+    first = at_first_step(tuned, cache, lambda m: m.text_encoder.embedding.weight.detach().clone())
+    torch.testing.assert_close(first, pretrained.text_encoder.embedding.weight)
 
 
 def test_init_from_starts_a_fresh_fit_from_another_runs_net(cache: Path, tmp_path: Path) -> None:
     """model.init_from (fine-tuning): a fresh fit starts from the checkpoint's net weights, not its own init; a
     checkpoint of another architecture is refused naming the setting."""
     pretrained = make_module()
-    trainer = L.Trainer(max_steps=3, accelerator="cpu", logger=False, enable_checkpointing=False,
-                        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)
-    trainer.fit(pretrained, datamodule(cache))
-    trainer.save_checkpoint(tmp_path / "pretrained.ckpt")
-    seen = {}
-
-    class Probe(L.Callback):
-        def on_train_batch_start(self, trainer, module, batch, batch_idx) -> None:
-            seen.setdefault("first", {k: v.detach().clone() for k, v in module.model.state_dict().items()})
-
+    pretrain(pretrained, cache, tmp_path / "pretrained.ckpt")
     tuned = make_module(init_from=str(tmp_path / "pretrained.ckpt"))
     torch.manual_seed(1)  # a different own init: only init_from can make the weights equal
-    L.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
-              enable_model_summary=False, limit_val_batches=0, callbacks=[Probe()]).fit(tuned, datamodule(cache))
+    first = at_first_step(tuned, cache, lambda m: {k: v.detach().clone() for k, v in m.model.state_dict().items()})
     for name, value in pretrained.model.state_dict().items():
-        torch.testing.assert_close(seen["first"][name], value)
+        torch.testing.assert_close(first[name], value)
     other = LatentWorldModelModule(net=functools.partial(LatentWorldModel, latent_channels=8, dim=32, depth=1, heads=4,
                                                          metadata_fields=META),
                                    optim=functools.partial(torch.optim.AdamW, lr=1e-3),
