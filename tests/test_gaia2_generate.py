@@ -18,7 +18,7 @@ from gaia_app.eval.report import combined_table
 from gaia_app.pipelines.gaia1_inputs import future_actions
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline, check_metadata, with_labels
 from gaia_app.tasks.gaia2_evaluate import box_masks
-from gaia_app.tasks.gaia2_generate import left_to_right, pixel_boxes
+from gaia_app.tasks.gaia2_generate import left_to_right, pixel_boxes, with_added_agents
 from gaia_app.tasks.generate import generate
 from gaia_app.tasks.train import train
 from tests.conftest import compose_config
@@ -165,6 +165,45 @@ def test_conditioning_boxes_project_onto_the_camera_that_sees_them(checkpoints) 
     masks = box_masks(cond, 16, 4)
     assert masks.shape == (3, 16, 64, 112) and masks[0].any() and masks[0, :, 32, 56].all()
     assert masks[0].sum() == 16 * int(masks[0, 0].sum())
+
+
+CAR_AHEAD = "model.add_agents=[{category: car, centre: [10, 0, 0.75], size: [4.5, 1.9, 1.5], velocity: [-2, 0]}]"
+
+
+def test_a_car_added_ahead_conditions_the_generated_steps_only(checkpoints, tmp_path: Path) -> None:
+    """model.add_agents (an edited scene): a rollout gets the new car on its generated frames, moving at its relative
+    velocity, under a new track id; the context keeps the clip's own agents; the front camera sees it."""
+    run(checkpoints, tmp_path, "rollout", "model.chunks=1", CAR_AHEAD)
+    conditioning = json.loads((tmp_path / "conditioning.json").read_text())
+    assert conditioning["added_agents"][0]["category"] == "car"
+    clip = read_latent_clip(find_latent_clips(checkpoints["latents"] / "val")[0])
+    pipeline = Gaia2Pipeline.from_checkpoints(checkpoints["tokenizer"], checkpoints["world_model"], 64, 112)
+    spec = {"category": "car", "centre": [10, 0, 0.75], "size": [4.5, 1.9, 1.5], "velocity": [-2, 0]}
+    edited = with_added_agents(clip, [spec], 8)
+    own = max(int(a.track_id.max()) for a in clip.agents if len(a))
+    for f in range(16):
+        assert len(edited.agents[f]) == len(clip.agents[f]) + (f >= 8)
+    car = edited.agents[8:]
+    dt = clip.timestamps[15] - clip.timestamps[8]
+    assert car[0].track_id[-1] == car[-1].track_id[-1] == own + 1
+    np.testing.assert_allclose(car[-1].centre[-1], [10 - 2 * dt, 0, 0.75], atol=1e-5)
+    front = pixel_boxes(edited)[8]["boxes_2d"]["front"]
+    assert any(box["track_id"] == own + 1 for box in front)
+    _, cond = pipeline.window(edited, 0, 4)
+    _, original = pipeline.window(clip, 0, 4)
+    given, own_count = cond.agents.mask[0].sum(-1), original.agents.mask[0].sum(-1)  # agents per latent step
+    assert torch.equal(given[:2], own_count[:2]) and torch.equal(given[2:], own_count[2:] + 1)
+
+
+def test_bad_added_agents_are_named(checkpoints, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"model.add_agents\[0\].category='tank'"):
+        run(checkpoints, tmp_path / "a", "scratch", "model.add_agents=[{category: tank, centre: [1,0,0], size: [1,1,1]}]")
+    with pytest.raises(ValueError, match=r"model.add_agents\[0\]: unknown keys \['speed'\], missing keys \['size'\]"):
+        run(checkpoints, tmp_path / "b", "scratch", "model.add_agents=[{category: car, centre: [1,0,0], speed: 3}]")
+    with pytest.raises(ValueError, match=r"model.add_agents\[0\].centre=\[1, 0\]: expected 3 finite numbers"):
+        run(checkpoints, tmp_path / "c", "scratch", "model.add_agents=[{category: car, centre: [1,0], size: [1,1,1]}]")
+    with pytest.raises(ValueError, match=r"model.add_agents\[0\].size=.*must be positive"):
+        run(checkpoints, tmp_path / "d", "scratch", "model.add_agents=[{category: car, centre: [1,0,0], size: [1,0,1]}]")
 
 
 def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> None:

@@ -3,7 +3,8 @@ latent world model (GAIA-2 report, inference; docs/latent_world_model.md).
 
 The clip (context.source: a synthetic rig clip rendered by `data`, a clip folder, or a clip of a latent cache) gives
 the cameras and every condition; the user's speed / curvature / prompt / model.metadata replace its labels on the
-generated frames, model.drop removes whole conditions.
+generated frames, model.add_agents adds boxes to its agents there (e.g. a car cut in ahead), model.drop removes
+whole conditions.
 
     scratch   model.steps latent steps from noise under the clip's conditions
     rollout   model.context_steps clean steps of the clip, then model.chunks chunks of steps − context_steps new
@@ -33,7 +34,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from gaia_app.data.clip import AGENT_CATEGORIES, Clip, ClipError
+from gaia_app.data.clip import AGENT_CATEGORIES, AgentBoxes, Clip, ClipError
 from gaia_app.data.collate import pad_agents
 from gaia_app.data.latent_cache import LatentClip, find_latent_clips, read_latent_clip
 from gaia_app.data.transforms import to_uint8
@@ -135,6 +136,64 @@ def commanded(cfg: DictConfig, clip: LatentClip, first_frame: int, fields: list[
         start_speed = float(clip.actions[max(first_frame - 1, 0), 0])
         actions = future_actions(_plain(cfg.speed), _plain(cfg.curvature), n, clip.fps, start_speed)
     return with_labels(clip, first_frame, actions, cfg.prompt, metadata)
+
+
+AGENT_KEYS = {"category", "centre", "size", "yaw", "velocity"}
+
+
+def with_added_agents(clip: LatentClip, specs: list[dict[str, Any]], first_frame: int) -> LatentClip:
+    """The clip with the agents of `specs` (model.add_agents) added to its own on frames first_frame..: each a box in
+    the ego frame at the first of those frames (centre (x forward, y left, z up) m, size (length, width, height) m,
+    yaw rad, category), moving at `velocity` (vx, vy) m/s relative to the ego; a new track id each."""
+    if not specs:
+        return clip
+    frames = clip.timestamps.shape[0]
+    own = clip.agents or [AgentBoxes.empty() for _ in range(frames)]
+    next_id = 1 + max((int(a.track_id.max()) for a in own if len(a)), default=0)
+    added = [added_agent(spec, i, next_id + i) for i, spec in enumerate(specs)]
+    elapsed = clip.timestamps - clip.timestamps[min(first_frame, frames - 1)]
+    agents = list(own)
+    for f in range(first_frame, frames):
+        moved = [replace(box, centre=box.centre + np.r_[velocity * elapsed[f], 0.0]) for box, velocity in added]
+        agents[f] = concat_agents([own[f], *moved])
+    return replace(clip, agents=agents)
+
+
+def added_agent(spec: Any, index: int, track_id: int) -> tuple[AgentBoxes, np.ndarray]:
+    """One model.add_agents entry → (its box at the first edited frame, its (vx, vy) relative velocity m/s)."""
+    where = f"model.add_agents[{index}]"
+    spec = _plain(spec)
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where}: expected a mapping with category, centre, size (and yaw, velocity), got {spec!r}")
+    unknown, missing = sorted(set(spec) - AGENT_KEYS), sorted({"category", "centre", "size"} - set(spec))
+    if unknown or missing:
+        raise ValueError(f"{where}: unknown keys {unknown}, missing keys {missing} (keys: {sorted(AGENT_KEYS)})")
+    if spec["category"] not in AGENT_CATEGORIES:
+        raise ValueError(f"{where}.category={spec['category']!r}: expected one of {list(AGENT_CATEGORIES)}")
+    centre, size = (numbers(spec[key], 3, f"{where}.{key}") for key in ("centre", "size"))
+    velocity = numbers(spec.get("velocity", [0.0, 0.0]), 2, f"{where}.velocity")
+    if (size <= 0).any():
+        raise ValueError(f"{where}.size={size.tolist()}: length, width and height must be positive metres")
+    yaw = float(numbers([spec.get("yaw", 0.0)], 1, f"{where}.yaw")[0])
+    box = AgentBoxes(centre[None], size[None], [yaw], [AGENT_CATEGORIES.index(spec["category"])], [track_id])
+    return box, velocity
+
+
+def numbers(value: Any, n: int, where: str) -> np.ndarray:
+    """`value` as n finite floats, or an error naming `where`."""
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        array = None
+    if array is None or array.shape != (n,) or not np.isfinite(array).all():
+        raise ValueError(f"{where}={value!r}: expected {n} finite numbers")
+    return array
+
+
+def concat_agents(parts: list[AgentBoxes]) -> AgentBoxes:
+    """The boxes of every part, in order, as one frame's AgentBoxes."""
+    return AgentBoxes(*(np.concatenate([getattr(p, k) for p in parts]) for k in
+                        ("centre", "size", "yaw", "category", "track_id")))
 
 
 def _plain(value: Any) -> Any:
@@ -304,7 +363,7 @@ def describe(cfg: DictConfig, clip: LatentClip, pipeline: Gaia2Pipeline, first_g
             "metadata": {k: clip.meta.get(k) for k in fields}, "prompt": cfg.prompt,
             "actions": None if clip.actions is None else np.round(clip.actions, 4).tolist(),
             "commanded": {"speed": _plain(cfg.speed), "curvature": _plain(cfg.curvature)},
-            "dropped": list(g.drop), "sampler": OmegaConf.to_container(g.sampler),
+            "dropped": list(g.drop), "added_agents": _plain(g.add_agents), "sampler": OmegaConf.to_container(g.sampler),
             "guidance": OmegaConf.to_container(g.guidance),
             **({"inpaint": OmegaConf.to_container(g.inpaint)} if cfg.mode == "inpaint" else {}),
             **({"edit_strength": g.edit_strength} if cfg.mode == "edit" else {})}
@@ -316,6 +375,7 @@ def gaia2_generate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     steps = latent_steps(cfg)
     first_generated = cfg.model.context_steps * pipeline.temporal if cfg.mode == "rollout" else 0
     clip = commanded(cfg, source_clip(cfg, pipeline, steps), first_generated, pipeline.metadata.fields)
+    clip = with_added_agents(clip, list(cfg.model.add_agents), first_generated)
     start = time.perf_counter()
     latents = sample_latents(cfg, pipeline, clip)
     seconds = (time.perf_counter() - start) / cfg.num_futures
