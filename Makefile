@@ -39,14 +39,21 @@ PROTOCOL := context.frames=4 seconds=1.25 guidance.scale=1.5 guidance.text_scale
 DEMO_CONTROLLABILITY := controllability.contexts=8 controllability.text_repeats=8 controllability.floor_repeats=32 \
 	controllability.real_clips=32 \
 	'controllability.prompts.weather=[clear,snow]'
+# GAIA-2 (gaia_app/weights/gaia2): one held-out 3-camera scene rolled out 3 chunks (1.92 s at 12.5 Hz) with a car
+# cut in 9 m ahead (model.add_agents) and guidance ×3 on the agent boxes
+GAIA2_DEMO := model.chunks=3 num_futures=1 model.guidance.scale=3 \
+	'model.add_agents=[{category: car, centre: [9, 0, 0.75], size: [4.5, 1.9, 1.5]}]'
 demo: install
 	$(PY) generate.py mode=showcase weights=gaia1 $(PROTOCOL) upsample=0 decoder_steps=16 decoder_blend.probability=0 \
 		hydra.run.dir=$(DEMO_DIR)/showcase
 	$(PY) generate.py mode=controllability weights=gaia1 $(PROTOCOL) $(DEMO_CONTROLLABILITY) \
 		hydra.run.dir=$(DEMO_DIR)/controllability
+	$(PY) generate.py model=gaia2 mode=rollout weights=gaia2 data=synthetic_rig $(GAIA2_DEMO) \
+		hydra.run.dir=$(DEMO_DIR)/gaia2
 	@echo "steered futures: $(DEMO_DIR)/showcase/commands/{grid.mp4,strip.png}; prompts: $(DEMO_DIR)/showcase/prompts/"
 	@echo "controllability (ceiling / model / floor): $(DEMO_DIR)/controllability/controllability.md"
-	@echo "Rerun: .venv/bin/rerun $(DEMO_DIR)/showcase/showcase.rrd"
+	@echo "GAIA-2, a car cut in ahead on 3 cameras: $(DEMO_DIR)/gaia2/{grid.mp4,sample_0.mp4}"
+	@echo "Rerun: .venv/bin/rerun $(DEMO_DIR)/showcase/showcase.rrd $(DEMO_DIR)/gaia2/rollout.rrd"
 
 # The whole chain trained from scratch at smoke size (minutes, not the recipe): tokenizer, token cache, world
 # model, video decoder, rollouts through the video decoder and the tokenizer, and a smoke-size controllability
