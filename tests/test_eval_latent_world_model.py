@@ -1,0 +1,42 @@
+"""benchmarks/eval_latent_world_model.py: context prediction of a latent world model against repeating the last
+context step, with a mean-of-samples point forecast and paired intervals (docs/latent_world_model.md)."""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import sys
+
+import pytest
+import torch
+
+from tests.conftest import ROOT
+from tests.test_gaia2_generate import checkpoints  # noqa: F401  (a fixture)
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("eval_latent_world_model",
+                                                  ROOT / "benchmarks" / "eval_latent_world_model.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_every_row_has_an_interval_and_its_difference_to_repeat(bench, checkpoints, monkeypatch, capsys) -> None:  # noqa: F811
+    monkeypatch.setattr(sys, "argv", ["eval", "--world-model-ckpt", str(checkpoints["world_model"]),
+                                      "--tokenizer-ckpt", str(checkpoints["tokenizer"]),
+                                      "--latents", str(checkpoints["latents"] / "val"),
+                                      "--solver-steps", "2", "--samples", "3"])
+    bench.main()
+    out = capsys.readouterr().out
+    rows = dict(re.findall(r"^\| (world model[^|]*|repeat last context step|mean latent) \| (.*) \|$", out, re.MULTILINE))
+    assert set(rows) == {"world model", "world model, mean of 3 samples", "repeat last context step", "mean latent"}
+    assert all(re.fullmatch(r"[\d.]+ \| [\d.]+ ± [\d.]+ \| -?[\d.]+ ± [\d.]+", v) for v in rows.values())
+    assert rows["repeat last context step"].endswith("| 0.00 ± 0.00")
+
+
+def test_interval_is_the_mean_and_a_normal_half_width(bench) -> None:
+    assert bench.interval(torch.tensor([1.0, 3.0])) == f"2.00 ± {1.96 * 2 ** 0.5 / 2 ** 0.5:.2f}"
