@@ -3,6 +3,7 @@ multi-camera clips with every condition beside the latents (GAIA-2 report, token
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,7 @@ import gaia_app.utils.run_dir as run_dir_module
 from gaia_app.data.latent_cache import find_latent_clips, read_latent_clip
 from gaia_app.data.transforms import to_float
 from gaia_app.lit.checkpoint import load_module
-from gaia_app.tasks.generate import generate
+from gaia_app.tasks.generate import generate, read_in_order
 from gaia_app.tasks.train import train
 from tests.conftest import compose_config
 
@@ -78,6 +79,23 @@ def test_clips_read_by_worker_processes_give_the_same_cache(ckpt: Path, tmp_path
     for folder in folders:
         np.testing.assert_array_equal(np.load(folder / "mean.npy"),
                                       np.load(tmp_path / "ahead" / "train" / folder.name / "mean.npy"))
+
+
+class WhoReads:
+    """Item i → (i, the id of the process that read it)."""
+
+    def __len__(self) -> int:
+        return 6
+
+    def __getitem__(self, i: int) -> tuple[int, int]:
+        return i, os.getpid()
+
+
+def test_worker_processes_read_the_clips_in_order() -> None:
+    read = list(read_in_order(WhoReads(), 5, 2))
+    assert [i for i, _ in read] == [0, 1, 2, 3, 4]
+    assert os.getpid() not in {pid for _, pid in read}
+    assert {pid for _, pid in read_in_order(WhoReads(), 3, 0)} == {os.getpid()}
 
 
 def test_encode_refuses_a_negative_worker_count(ckpt: Path, tmp_path: Path) -> None:
