@@ -2,6 +2,7 @@
 
     python benchmarks/eval_latent_world_model.py --world-model-ckpt WM/checkpoints/last.ckpt \
         --tokenizer-ckpt TOK/checkpoints/last.ckpt --latents data/latents/val
+    python benchmarks/eval_latent_world_model.py --weights gaia2 --latents data/latents/val   # a weights folder
 
 For each window of `--steps` latent steps: the first `--context` steps are given clean, the rest are
 generated (LatentWorldModelPipeline.rollout, one chunk, the window's own conditions, Euler 50 linear-quadratic
@@ -21,14 +22,13 @@ import argparse
 import torch
 from tqdm import tqdm
 
-from gaia_app.data.latent_cache import find_latent_clips
+from gaia_app.data.latent_cache import find_latent_clips, read_latent_clip
 from gaia_app.data.latent_windows import LatentWindows, collate_latent_windows
 from gaia_app.data.metadata import MetadataEncoder
 from gaia_app.diffusion.flow_matching import FlowSampler
 from gaia_app.eval.metrics import psnr
-from gaia_app.lit.checkpoint import load_module
 from gaia_app.models.gaia2.conditioning import batch_conditions
-from gaia_app.pipelines.gaia2_world_model import LatentWorldModelPipeline
+from gaia_app.pipelines.gaia2 import Gaia2Pipeline
 
 
 def decoded_psnr(tokenizer, latents: torch.Tensor, reference: torch.Tensor) -> float:
@@ -41,8 +41,9 @@ def decoded_psnr(tokenizer, latents: torch.Tensor, reference: torch.Tensor) -> f
 @torch.no_grad()
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--world-model-ckpt", required=True)
-    parser.add_argument("--tokenizer-ckpt", required=True)
+    parser.add_argument("--world-model-ckpt", help="a latent world model training checkpoint (with --tokenizer-ckpt)")
+    parser.add_argument("--tokenizer-ckpt", help="the video tokenizer checkpoint its latents come from")
+    parser.add_argument("--weights", help="instead of the two checkpoints: a weights folder (e.g. gaia2)")
     parser.add_argument("--latents", required=True, help="a split folder of a latent cache (e.g. data/latents/val)")
     parser.add_argument("--steps", type=int, default=4)
     parser.add_argument("--context", type=int, default=2)
@@ -51,13 +52,19 @@ def main() -> None:
     args = parser.parse_args()
     if args.samples < 1:
         parser.error(f"--samples {args.samples}: expected at least 1")
+    if bool(args.weights) == bool(args.world_model_ckpt and args.tokenizer_ckpt):
+        parser.error("give --weights, or --world-model-ckpt and --tokenizer-ckpt")
     torch.manual_seed(0)
-    module = load_module(args.world_model_ckpt)
-    tokenizer = load_module(args.tokenizer_ckpt).tokenizer.eval()
-    fields = list(module.model.conditioner.metadata_fields)
-    windows = LatentWindows(find_latent_clips(args.latents), args.steps, MetadataEncoder(fields), random_window=False)
-    pipe = LatentWorldModelPipeline(module.model, FlowSampler(steps=args.solver_steps))
-    scale, c = module.latent_scale, args.context
+    folders = find_latent_clips(args.latents)
+    sampler = FlowSampler(steps=args.solver_steps)
+    if args.weights:
+        models = Gaia2Pipeline.from_weights(args.weights, sampler)
+    else:
+        height, width = read_latent_clip(folders[0]).image_size
+        models = Gaia2Pipeline.from_checkpoints(args.tokenizer_ckpt, args.world_model_ckpt, height, width, sampler)
+    pipe, tokenizer, scale, c = models.world, models.tokenizer, models.scale, args.context
+    fields = list(pipe.model.conditioner.metadata_fields)
+    windows = LatentWindows(folders, args.steps, MetadataEncoder(fields), random_window=False)
     mean_row = f"world model, mean of {args.samples} samples"
     names = ["world model"] + ([mean_row] if args.samples > 1 else []) + ["repeat last context step", "mean latent"]
     rows: dict[str, list[float]] = {name: [] for name in names}
@@ -65,7 +72,7 @@ def main() -> None:
     for i in tqdm(range(len(windows)), desc="windows"):
         batch = collate_latent_windows([windows[i]])
         real = batch["mean"] * scale
-        cond = batch_conditions(batch, module.text_vector(batch))
+        cond = batch_conditions(batch, models.text_vector(batch))
         samples = [pipe.rollout(real[:, :, :c], [cond], chunk_steps=args.steps - c,
                                 generator=torch.Generator().manual_seed(i * args.samples + k))
                    for k in range(args.samples)]

@@ -69,6 +69,27 @@ def test_cached_latents_are_the_tokenizers_posterior(ckpt: Path, tmp_path: Path)
     np.testing.assert_allclose(clip.logvar, posterior.logvar[0].numpy(), atol=2e-2, rtol=1e-2)
 
 
+def test_encode_with_the_shipped_tokenizer(tmp_path: Path) -> None:
+    """weights=gaia2 encodes with the shipped video tokenizer (a cache to fine-tune the shipped world model on,
+    model.init_from=gaia2): its posterior, and weights with ckpt is refused."""
+    from gaia_app.utils.shipped import load_nets, shipped_folder
+
+    out = tmp_path / "latents"
+    cfg = compose_config("generate", [*ENCODE, "weights=gaia2", f"out_dir={out}", "splits=[val]", "max_clips=1"],
+                         tmp_path / "g1")
+    assert generate(cfg)["results"]["val"]["written"] == 1
+    datamodule = instantiate(cfg.data)
+    datamodule.setup("fit")
+    source = datamodule.val_clips[0]
+    clip = read_latent_clip(out / "val" / source.clip_id)
+    video = to_float(torch.from_numpy(source.frames[:, :8]))
+    with torch.no_grad():
+        posterior = load_nets(shipped_folder("gaia2"), "video_tokenizer")[0]["net"].encode(video[None])
+    np.testing.assert_allclose(clip.mean, posterior.mean[0].numpy(), atol=2e-2, rtol=1e-2)
+    with pytest.raises(ValueError, match="weights=gaia2 replaces ckpt=.*give one of them"):
+        run_encode(Path("some.ckpt"), tmp_path / "g2", out, "weights=gaia2")
+
+
 def test_clips_read_by_worker_processes_give_the_same_cache(ckpt: Path, tmp_path: Path) -> None:
     """workers=2 renders the clips in background processes: same clips, same order, same latents as workers=0."""
     here = run_encode(ckpt, tmp_path / "g1", tmp_path / "here", "splits=[train]", "max_clips=4")

@@ -38,5 +38,17 @@ def test_every_row_has_an_interval_and_its_difference_to_repeat(bench, checkpoin
     assert rows["repeat last context step"].endswith("| 0.00 ± 0.00")
 
 
+def test_a_weights_folder_replaces_the_two_checkpoints(bench, checkpoints, monkeypatch, capsys) -> None:  # noqa: F811
+    """--weights gaia2 scores the shipped world model through its own tokenizer; neither source is refused."""
+    latents = ["--latents", str(checkpoints["latents"] / "val"), "--solver-steps", "2"]
+    monkeypatch.setattr(sys, "argv", ["eval", "--weights", "gaia2", *latents])
+    bench.main()
+    assert re.search(r"^\| world model \| [\d.]+ \| [\d.]+ ± [\d.]+ \|", capsys.readouterr().out, re.MULTILINE)
+    monkeypatch.setattr(sys, "argv", ["eval", *latents])
+    with pytest.raises(SystemExit):
+        bench.main()
+    assert "give --weights, or --world-model-ckpt and --tokenizer-ckpt" in capsys.readouterr().err
+
+
 def test_interval_is_the_mean_and_a_normal_half_width(bench) -> None:
     assert bench.interval(torch.tensor([1.0, 3.0])) == f"2.00 ± {1.96 * 2 ** 0.5 / 2 ** 0.5:.2f}"

@@ -275,6 +275,29 @@ def test_export_gives_a_weights_folder_that_generates_like_the_checkpoints(check
                                              f"world_model_ckpt={checkpoints['world_model']}"], tmp_path / "wrong"))
 
 
+def test_export_keeps_the_tokenizer_of_a_weights_folder(checkpoints, tmp_path: Path) -> None:
+    """A world model fine-tuned from shipped weights (model.init_from=gaia2) is exported beside their tokenizer:
+    `weights=<folder>` copies its video tokenizer (also into the folder itself), and refuses tokenizer_ckpt too."""
+    first = tmp_path / "first"
+    generate(compose_config("generate", ["model=gaia2", "mode=export", *RIG, f"tokenizer_ckpt={checkpoints['tokenizer']}",
+                                         f"world_model_ckpt={checkpoints['world_model']}", f"out_dir={first}"],
+                            tmp_path / "e1"))
+    for out in (tmp_path / "second", first):
+        results = generate(compose_config("generate", ["model=gaia2", "mode=export", *RIG, f"weights={first}",
+                                                       f"world_model_ckpt={checkpoints['world_model']}",
+                                                       f"out_dir={out}"], tmp_path / f"e_{out.name}"))["results"]
+        assert results["video_tokenizer"] == f"copied from {first}"
+        assert results["latent_world_model"]["parameters"] > 0
+    second = tmp_path / "second"
+    for name in ("video_tokenizer.safetensors", "video_tokenizer.yaml"):
+        assert (second / name).read_bytes() == (first / name).read_bytes()
+    with pytest.raises(ValueError, match="gives the video tokenizer; drop tokenizer_ckpt"):
+        generate(compose_config("generate", ["model=gaia2", "mode=export", *RIG, f"weights={first}",
+                                             f"tokenizer_ckpt={checkpoints['tokenizer']}",
+                                             f"world_model_ckpt={checkpoints['world_model']}",
+                                             f"out_dir={tmp_path / 'x'}"], tmp_path / "both"))
+
+
 def test_inference_builds_nets_without_lightning_modules(checkpoints, tmp_path: Path) -> None:
     """Issue 23: GAIA-2 inference and the tokenizer modes build bare nets from checkpoints; no gaia_app.lit module
     (and so no LightningModule) is imported on the way (a fresh interpreter, so nothing is preloaded)."""

@@ -13,8 +13,19 @@ import torch
 from hydra.utils import instantiate
 
 from gaia_app.lit.base import GaiaModule
-from gaia_app.utils.checkpoint_io import (UnsafeCheckpointError, check_checkpoint_file, model_config,  # noqa: F401
-                                          read_checkpoint, safe_torch_load)
+from gaia_app.utils.checkpoint_io import (  # noqa: F401
+    UnsafeCheckpointError,
+    check_checkpoint_file,
+    model_config,
+    read_checkpoint,
+    safe_torch_load,
+)
+from gaia_app.utils.shipped import (
+    read_config,
+    read_tensors,
+    shipped_folder,
+    weight_files,
+)
 
 
 def load_module(ckpt_path: str | Path, map_location: str | torch.device = "cpu") -> GaiaModule:
@@ -26,16 +37,14 @@ def load_module(ckpt_path: str | Path, map_location: str | torch.device = "cpu")
     return module.eval()
 
 
-def load_net_weights(net: torch.nn.Module, path: str | Path, what: str, prefix: str = "net.") -> None:
+def load_net_weights(net: torch.nn.Module, path: str | Path, what: str, prefix: str = "net.",
+                     component: str | None = None) -> None:
     """Copy the `{prefix}*` weights of a training checkpoint into `net`, in place (strict: same architecture).
-    what: the checkpoint that `model.init_from` should name, for errors (e.g. "a stage-1 tokenizer checkpoint")."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"model.init_from='{path}' does not exist: give {what}")
-    state = read_checkpoint(path).get("state_dict", {})
-    weights = {k.removeprefix(prefix): v for k, v in state.items() if k.startswith(prefix)}
-    if not weights:
-        raise KeyError(f"model.init_from='{path}' holds no '{prefix}*' weights: is it {what}?")
+    what: the checkpoint that `model.init_from` should name, for errors (e.g. "a stage-1 tokenizer checkpoint").
+    component: also accept a weights folder (a path, or a shipped name such as "gaia2") holding
+    `<component>.safetensors`, whose tensors are named `<net key>.<parameter>` like a checkpoint's (utils/shipped.py):
+    fine-tuning starts from shipped weights without a training checkpoint."""
+    weights = initial_weights(path, what, prefix, component)
     try:
         missing, unexpected = net.load_state_dict(weights, strict=False)
     except RuntimeError as error:  # tensors of other shapes
@@ -45,3 +54,32 @@ def load_net_weights(net: torch.nn.Module, path: str | Path, what: str, prefix: 
     if missing or unexpected:
         raise ValueError(f"model.init_from='{path}' does not fit model.net: missing {missing[:5]}, "
                          f"unexpected {unexpected[:5]} (same preset as the run it comes from?)")
+
+
+def initial_weights(path: str | Path, what: str, prefix: str, component: str | None) -> dict[str, torch.Tensor]:
+    """{parameter: tensor} under `prefix` of a checkpoint file, or of a weights folder's `<component>` tensors."""
+    path = Path(path)
+    if path.is_file():
+        state = read_checkpoint(path).get("state_dict", {})
+    elif component is not None:
+        state = shipped_tensors(path, component, what)
+    else:
+        raise FileNotFoundError(f"model.init_from='{path}' does not exist: give {what}")
+    weights = {k.removeprefix(prefix): v for k, v in state.items() if k.startswith(prefix)}
+    if not weights:
+        raise KeyError(f"model.init_from='{path}' holds no '{prefix}*' weights: is it {what}?")
+    return weights
+
+
+def shipped_tensors(path: Path, component: str, what: str) -> dict[str, torch.Tensor]:
+    """The tensors of `<component>.safetensors` in the weights folder `path` (a folder, or a name under
+    gaia_app/weights), checked against its YAML's component."""
+    try:
+        folder = shipped_folder(path)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"model.init_from='{path}' is neither a file nor a weights folder: give {what}, or "
+                                f"a weights folder with {component}.safetensors (e.g. gaia_app/weights/gaia2)") from None
+    weights, config = weight_files(folder, component)
+    if read_config(config).get("component") != component:
+        raise ValueError(f"model.init_from='{path}': {config.name} is not a {component} component")
+    return read_tensors(weights)

@@ -38,9 +38,9 @@ class LatentWorldModelModule(GaiaModule):
         sample_posterior: draw latents from the posterior (True) or use its mean.
         latent_scale: latents are multiplied by it (about 1 / their standard deviation).
         val_taus: fixed τ values at which validation measures the loss (comparable across runs).
-        init_from: a latent world model checkpoint whose net weights (and a trainable text encoder's) start a fresh
-            fit (fine-tuning, e.g. on a real rig after synthetic pre-training: the net takes any number of cameras);
-            None: random init.
+        init_from: a latent world model checkpoint, or a weights folder (e.g. "gaia2", the shipped one), whose net
+            weights (and a trainable text encoder's) start a fresh fit (fine-tuning, e.g. on a real rig after
+            synthetic pre-training: the net takes any number of cameras); None: random init.
     """
 
     def __init__(self, net: Callable[[], LatentWorldModel], optim: Callable, sched: Callable | None = None,
@@ -69,11 +69,13 @@ class LatentWorldModelModule(GaiaModule):
     def on_fit_start(self) -> None:
         # a resumed run (ckpt_path) holds its own weights: init_from only starts a fresh one
         if self.init_from and self.trainer.ckpt_path is None:
-            load_net_weights(self.model, self.init_from, "a latent world model checkpoint of the same preset")
+            load_net_weights(self.model, self.init_from, "a latent world model checkpoint of the same preset",
+                             component="latent_world_model")
             if self.text_encoder is not None and any(p.requires_grad for p in self.text_encoder.parameters()):
                 # a trained text encoder (model/text_encoder=learned) is part of what the net learned to read
                 load_net_weights(self.text_encoder, self.init_from, "a latent world model checkpoint trained with "
-                                 "the same model/text_encoder", prefix="text_encoder.")
+                                 "the same model/text_encoder", prefix="text_encoder.",
+                                 component="latent_world_model")
 
     def latents(self, batch: dict[str, Any], sample: bool) -> torch.Tensor:
         """(b, v, t, C, h, w) scaled latents: a posterior sample or the mean."""

@@ -52,10 +52,7 @@ def export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                                                 {"image_size": image_size}, cfg.export_dtype)
     else:
         image_size = [int(v) for v in read_config(weight_files(source, "tokenizer")[1])["info"]["image_size"]]
-        out.mkdir(parents=True, exist_ok=True)
-        for path in weight_files(source, "tokenizer"):
-            shutil.copyfile(path, out / path.name)
-        results["tokenizer"] = f"copied from {source}"
+        results["tokenizer"] = copy_component(source, out, "tokenizer")
     world_model = read_checkpoint(cfg.world_model_ckpt)
     nets = ["net"] + (["text_encoder"] if world_model["hyper_parameters"]["model_cfg"].get("text_encoder") else [])
     results["world_model"] = export_component(world_model, out, "world_model", nets,
@@ -74,6 +71,17 @@ def export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     return results
 
 
+def copy_component(source: Path, out: Path, component: str) -> str:
+    """Copy `<component>.{safetensors,yaml}` of the weights folder `source` into `out` (nothing to do when they are
+    the same folder): a folder exported from a new world model keeps the tokenizer it was trained on."""
+    read_config(weight_files(source, component)[1])  # refuses a missing or foreign config
+    out.mkdir(parents=True, exist_ok=True)
+    for path in weight_files(source, component):
+        if path.resolve() != (out / path.name).resolve():
+            shutil.copyfile(path, out / path.name)
+    return f"copied from {source}"
+
+
 def checked_checkpoint(path: str, role: str, component: str) -> dict[str, Any]:
     """The checkpoint dict of `path` (read weights-only), refused with a message naming `role` unless it holds a
     `component` of pipelines/checkpoint_nets.COMPONENTS (e.g. "video_tokenizer")."""
@@ -87,20 +95,29 @@ def checked_checkpoint(path: str, role: str, component: str) -> dict[str, Any]:
 
 
 def export_gaia2(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """A GAIA-2 weights folder in `cfg.out_dir` from `cfg.tokenizer_ckpt` and `cfg.world_model_ckpt`."""
+    """A GAIA-2 weights folder in `cfg.out_dir` from `cfg.tokenizer_ckpt` (or the video tokenizer of the weights
+    folder `cfg.weights`, copied: a world model fine-tuned from shipped weights keeps their tokenizer) and
+    `cfg.world_model_ckpt`."""
+    source = shipped_folder(cfg.weights) if cfg.get("weights") else None
+    if source is not None and cfg.get("tokenizer_ckpt"):
+        raise ValueError(f"model=gaia2 mode=export: weights={cfg.weights} gives the video tokenizer; drop tokenizer_ckpt")
     for key in ("tokenizer_ckpt", "world_model_ckpt"):
-        if not cfg.get(key):
+        if not cfg.get(key) and not (key == "tokenizer_ckpt" and source is not None):
             raise ValueError(f"model=gaia2 mode=export needs {key}=<checkpoint of a GAIA-2 "
-                             f"{'video tokenizer' if key == 'tokenizer_ckpt' else 'latent world model'}>")
+                             f"{'video tokenizer' if key == 'tokenizer_ckpt' else 'latent world model'}>"
+                             + (" (or weights=<folder>)" if key == "tokenizer_ckpt" else ""))
     out = Path(cfg.out_dir)
-    tokenizer = checked_checkpoint(cfg.tokenizer_ckpt, "tokenizer_ckpt", "video_tokenizer")
     world_model = checked_checkpoint(cfg.world_model_ckpt, "world_model_ckpt", "latent_world_model")
+    if source is None:
+        tokenizer = checked_checkpoint(cfg.tokenizer_ckpt, "tokenizer_ckpt", "video_tokenizer")
+        tokenizer_result: Any = export_component(tokenizer, out, "video_tokenizer", ["net"],
+                                                 {"image_size": [int(cfg.data.height), int(cfg.data.width)]},
+                                                 cfg.export_dtype)
+    else:
+        tokenizer_result = copy_component(source, out, "video_tokenizer")
     model_cfg = world_model["hyper_parameters"]["model_cfg"]
     nets = ["net"] + (["text_encoder"] if model_cfg.get("text_encoder") else [])
-    return {"out_dir": str(out),
-            "video_tokenizer": export_component(tokenizer, out, "video_tokenizer", ["net"],
-                                                {"image_size": [int(cfg.data.height), int(cfg.data.width)]},
-                                                cfg.export_dtype),
+    return {"out_dir": str(out), "video_tokenizer": tokenizer_result,
             "latent_world_model": export_component(world_model, out, "latent_world_model", nets,
                                                    {"latent_scale": float(model_cfg.get("latent_scale", 1.0))},
                                                    cfg.export_dtype)}

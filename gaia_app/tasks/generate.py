@@ -218,12 +218,14 @@ MODES = {"reconstruct": {"tokenizer": reconstruct, "video_tokenizer": reconstruc
 
 def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """The single-checkpoint modes of `MODES` on the tokenizer net of `cfg.ckpt` (built from the checkpoint's
-    tensors and checked config, pipelines/checkpoint_nets.py), or mode=tokenize / reconstruct on the tokenizer of
-    `cfg.weights`."""
+    tensors and checked config, pipelines/checkpoint_nets.py), or mode=tokenize / reconstruct / encode on the
+    tokenizer of `cfg.weights`."""
     if cfg.mode not in MODES:
         raise ValueError(f"mode={cfg.mode}: expected one of {sorted(MODES) + list(ROLLOUT_MODES) + ['controllability', 'evaluate', 'export', 'showcase']}")
     if cfg.mode in ("tokenize", "reconstruct") and cfg.get("weights"):
         return MODES[cfg.mode]["tokenizer"](cfg, shipped_tokenizer(cfg), run_dir)
+    if cfg.mode == "encode" and cfg.get("weights"):
+        return encode(cfg, shipped_tokenizer(cfg, "video_tokenizer"), run_dir)
     if not cfg.ckpt:
         raise ValueError(f"mode={cfg.mode} needs ckpt=<checkpoint of a trained tokenizer>")
     runs = MODES[cfg.mode]
@@ -234,12 +236,13 @@ def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     return runs[component_of(config)](cfg, nets["net"], run_dir)
 
 
-def shipped_tokenizer(cfg: DictConfig) -> ImageTokenizer:
-    """The image tokenizer of the weights folder `cfg.weights` (e.g. gaia1), checked against the data's frame size:
-    a token cache for a world model that will run beside those weights."""
+def shipped_tokenizer(cfg: DictConfig, component: str = "tokenizer") -> ImageTokenizer | VideoTokenizer:
+    """The image tokenizer (or GAIA-2 video tokenizer) of the weights folder `cfg.weights` (e.g. gaia1, gaia2), checked
+    against the data's frame size: a token or latent cache for a world model that will run beside those weights
+    (or be fine-tuned from them, model.init_from)."""
     if cfg.ckpt:
         raise ValueError(f"weights={cfg.weights} replaces ckpt={cfg.ckpt}; give one of them")
-    nets, info = load_nets(shipped_folder(cfg.weights), "tokenizer", cfg.device)
+    nets, info = load_nets(shipped_folder(cfg.weights), component, cfg.device)
     size = tuple(info.get("image_size", ()))
     if size != (cfg.data.height, cfg.data.width):
         raise ValueError(f"weights={cfg.weights}: its tokenizer was trained on {size} frames, but data.height × "

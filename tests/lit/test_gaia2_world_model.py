@@ -176,3 +176,31 @@ def test_init_from_starts_a_fresh_fit_from_another_runs_net(cache: Path, tmp_pat
     with pytest.raises(ValueError, match="model.init_from=.*does not fit model.net"):
         L.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
                   enable_model_summary=False, limit_val_batches=0).fit(other, datamodule(cache))
+
+
+def test_init_from_a_weights_folder(cache: Path, tmp_path: Path) -> None:
+    """model.init_from may name a weights folder (e.g. the shipped gaia2): fine-tuning the shipped world model needs
+    no training checkpoint. Its `latent_world_model` tensors start the fit; another component or a missing path is
+    refused naming the setting."""
+    import yaml
+    from safetensors.torch import save_file
+
+    pretrained = make_module()
+    pretrain(pretrained, cache, tmp_path / "pretrained.ckpt")
+    folder = tmp_path / "weights"
+    folder.mkdir()
+    save_file({f"net.{k}": v.contiguous() for k, v in pretrained.model.state_dict().items()},
+              str(folder / "latent_world_model.safetensors"))
+    config = {"format": 1, "component": "latent_world_model", "dtype": "float32",
+              "nets": {"net": {"_target_": "gaia_app.models.gaia2.latent_world_model.LatentWorldModel"}}}
+    (folder / "latent_world_model.yaml").write_text(yaml.safe_dump(config))
+    torch.manual_seed(1)
+    tuned = make_module(init_from=str(folder))
+    first = at_first_step(tuned, cache, lambda m: {k: v.detach().clone() for k, v in m.model.state_dict().items()})
+    for name, value in pretrained.model.state_dict().items():
+        torch.testing.assert_close(first[name], value)
+    (folder / "latent_world_model.yaml").write_text(yaml.safe_dump({**config, "component": "video_tokenizer"}))
+    with pytest.raises(ValueError, match="latent_world_model.yaml is not a latent_world_model component"):
+        at_first_step(make_module(init_from=str(folder)), cache, lambda m: None)
+    with pytest.raises(FileNotFoundError, match="neither a file nor a weights folder"):
+        at_first_step(make_module(init_from=str(tmp_path / "nowhere")), cache, lambda m: None)
