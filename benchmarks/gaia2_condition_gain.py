@@ -2,6 +2,7 @@
 
     python benchmarks/gaia2_condition_gain.py --world-model-ckpt WM/checkpoints/last.ckpt \
         --latents data/latents/val --out outputs/condition_gain.json
+    python benchmarks/gaia2_condition_gain.py --weights gaia2 --latents data/latents/val   # a weights folder
 
 Every window of `--steps` latent steps at every start of every clip in `--latents`; the first `--context` steps
 clean, the rest noised at τ ∈ {0.25, 0.5, 0.75} with two fixed noise draws each (gaia_app/eval/flow_gain.py).
@@ -21,17 +22,23 @@ import torch
 from gaia_app.eval.flow_gain import condition_gain_report, every_window
 from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
 from gaia_app.utils.run_dir import atomic_write_text
+from gaia_app.utils.shipped import load_nets, shipped_folder
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--world-model-ckpt", required=True)
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--world-model-ckpt", help="a latent world model training checkpoint")
+    source.add_argument("--weights", help="or a weights folder (e.g. gaia2)")
     parser.add_argument("--latents", required=True, help="a split folder of a latent cache (e.g. data/latents/val)")
     parser.add_argument("--steps", type=int, default=4)
     parser.add_argument("--context", type=int, default=2)
     parser.add_argument("--out", help="also write the numbers to this JSON file")
     args = parser.parse_args()
-    nets, config = checkpoint_nets(args.world_model_ckpt, "latent_world_model", "--world-model-ckpt", "cpu")
+    if args.weights:
+        nets, config = load_nets(shipped_folder(args.weights), "latent_world_model")
+    else:
+        nets, config = checkpoint_nets(args.world_model_ckpt, "latent_world_model", "--world-model-ckpt", "cpu")
     net = nets["net"].eval()
     batch = every_window(args.latents, args.steps, list(net.conditioner.metadata_fields))
     report = condition_gain_report(net, batch, float(config.get("latent_scale", 1.0)), args.context)

@@ -20,7 +20,7 @@ from gaia_app.eval.controllability import (
     save_probes,
     train_probes,
 )
-from gaia_app.eval.intervals import mean_interval, share_interval, t_quantile
+from gaia_app.eval.intervals import mean_interval, ratio_interval, share_interval, t_quantile
 from gaia_app.models.probes import ATTRIBUTES, InverseDynamicsProbe, SceneAttributeProbe
 from gaia_app.tasks.controllability import drive, probe_training_data, random_command
 
@@ -166,3 +166,18 @@ def test_phase_clips_label_each_step_with_the_mean_action_it_spans() -> None:
     torch.testing.assert_close(phases.actions[2, 1], torch.from_numpy(clip.actions[6:10]).mean(dim=0))
     with pytest.raises(ValueError, match="needs actions and 16 frames"):
         phase_clips(clip, rate=6.25, frames=4)
+
+
+def test_pooled_ratio_interval_resamples_units_and_pairs_differences() -> None:
+    """IoU pooled over scenes: Σ intersections / Σ unions, a bootstrap interval around it; the paired difference of
+    two ratios on the same scenes is exactly 0 for identical counts and excludes 0 for one better on every scene."""
+    intersections, unions = [10, 20, 30, 40], [100, 100, 100, 100]
+    pooled = ratio_interval(intersections, unions)
+    assert pooled.mean == pytest.approx(0.25) and pooled.low < 0.25 < pooled.high and pooled.n == 4
+    assert ratio_interval(intersections, unions) == pooled  # a fixed seed: reproducible tables
+    same = ratio_interval(intersections, unions, minus=(intersections, unions))
+    assert same.mean == same.low == same.high == 0.0
+    better = ratio_interval([i + 5 for i in intersections], unions, minus=(intersections, unions))
+    assert better.mean == pytest.approx(0.05) and better.low > 0
+    with pytest.raises(ValueError, match="equal non-empty"):
+        ratio_interval([1, 2], [3])

@@ -52,3 +52,14 @@ def test_a_weights_folder_replaces_the_two_checkpoints(bench, checkpoints, monke
 
 def test_interval_is_the_mean_and_a_normal_half_width(bench) -> None:
     assert bench.interval(torch.tensor([1.0, 3.0])) == f"2.00 ± {1.96 * 2 ** 0.5 / 2 ** 0.5:.2f}"
+
+
+def test_condition_gain_reads_a_weights_folder(checkpoints, monkeypatch, capsys) -> None:  # noqa: F811
+    """benchmarks/gaia2_condition_gain.py --weights gaia2: the teacher-forced gains of the shipped world model."""
+    spec = importlib.util.spec_from_file_location("gaia2_condition_gain", ROOT / "benchmarks" / "gaia2_condition_gain.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    monkeypatch.setattr(sys, "argv", ["gain", "--weights", "gaia2", "--latents", str(checkpoints["latents"] / "val")])
+    module.main()
+    out = capsys.readouterr().out
+    assert re.search(r"action discrimination with agents +[+-][\d.]+ \[[+-][\d.]+, [+-][\d.]+\]", out), out

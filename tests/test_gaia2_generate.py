@@ -212,6 +212,15 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     assert set(results["agents"]["rows"]) == {"real frames", "tokenized real", "model, agent conditions",
                                               "model, plain CFG ×3", "model, selective CFG ×3",
                                               "model, selective CFG ×3, full second pass", "model, agents dropped"}
+    agents = results["agents"]["rows"]
+    for name, row in agents.items():  # every IoU with its interval over scenes; the guided rows paired to plain CFG
+        interval = row["iou_agent_masks_interval"]
+        assert interval["n"] == 2 and interval["mean"] == row["iou_agent_masks"]
+        assert ("iou_agent_masks_minus_plain" in row) == (name in {"model, selective CFG ×3",
+                                                                   "model, selective CFG ×3, full second pass"})
+    paired = agents["model, selective CFG ×3"]["iou_agent_masks_minus_plain"]["mean"]
+    assert paired == pytest.approx(agents["model, selective CFG ×3"]["iou_agent_masks"]
+                                   - agents["model, plain CFG ×3"]["iou_agent_masks"])
     actions = results["actions"]
     assert set(actions["rows"]) == {"ceiling", "tokenized", "model", "floor", "reference"}
     assert actions["contrasts"] == {"speed_contrast": ["accelerate/straight", "brake/straight"],
@@ -231,6 +240,7 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     assert all(set(row) == {"psnr", "ssim", "fvmd", "agent_iou"} for row in fidelity["rows"].values())
     table = (tmp_path / "gaia2_evaluation.md").read_text()
     assert "IoU with agent masks" in table and "speed contrast error" in table and "held frame (floor)" in table
+    assert "agent masks − plain CFG" in table
     assert "| probe check: ceiling ≤ ½ floor and ≤ ½ reference |" in table
     assert "| model, each camera generated alone (floor) |" in table
     assert results["actions"]["scored_steps"] == 7  # 8 generated frames → 7 pairs after the first

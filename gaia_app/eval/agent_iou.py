@@ -57,6 +57,14 @@ def train_agent_probe(frames: torch.Tensor, masks: torch.Tensor, steps: int = 30
 @torch.no_grad()
 def agent_iou(probe: AgentSegmentationProbe, frames: torch.Tensor, masks: torch.Tensor, chunk: int = 64) -> float:
     """Pooled IoU of the probe's agent masks on frames (b, t, 3, H, W) with masks (b, t, H, W); nan if both are empty."""
+    intersection, union = agent_overlap(probe, frames, masks, chunk)
+    return intersection / union if union else float("nan")
+
+
+def agent_overlap(probe: AgentSegmentationProbe, frames: torch.Tensor, masks: torch.Tensor, chunk: int = 64
+                  ) -> tuple[int, int]:
+    """(intersection, union) pixel counts of the probe's agent masks on frames (b, t, 3, H, W) with masks
+    (b, t, H, W): per-scene counts, whose sums give the pooled IoU and whose resampling gives its interval."""
     if frames.shape[:2] != masks.shape[:2]:
         raise ValueError(f"agent_iou: frames {tuple(frames.shape)} and masks {tuple(masks.shape)} do not match")
     intersection = union = 0
@@ -64,4 +72,4 @@ def agent_iou(probe: AgentSegmentationProbe, frames: torch.Tensor, masks: torch.
         predicted = probe(images) > 0
         intersection += int((predicted & truth).sum())
         union += int((predicted | truth).sum())
-    return intersection / union if union else float("nan")
+    return intersection, union

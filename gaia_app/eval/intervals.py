@@ -1,8 +1,9 @@
 """95 % intervals for the tables that compare a model with its ceiling and floor.
 
-Two cases cover them: the mean of independent per-unit scores (per context, per rollout) gets a Student-t
+Three cases cover them: the mean of independent per-unit scores (per context, per rollout) gets a Student-t
 interval; a share of units that pass (rollouts that read "night") gets a Wilson score interval, which stays
-inside [0, 1] and is not degenerate at 0 or 1 successes.
+inside [0, 1] and is not degenerate at 0 or 1 successes; a pooled ratio over units (IoU = Σ intersection / Σ union
+over scenes) and the paired difference of two such ratios on the same units get a percentile bootstrap over units.
 """
 
 from __future__ import annotations
@@ -10,6 +11,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+
+import numpy as np
 
 Z95 = 1.959963984540054  # standard normal 97.5 % quantile
 
@@ -66,3 +69,27 @@ def share_interval(successes: int, n: int) -> Estimate:
     centre = (p + z2 / (2 * n)) / (1 + z2 / n)
     half = Z95 * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / (1 + z2 / n)
     return Estimate(p, max(0.0, centre - half), min(1.0, centre + half), n)
+
+
+def ratio_interval(numerators: Sequence[float], denominators: Sequence[float], minus: tuple[Sequence[float],
+                   Sequence[float]] | None = None, resamples: int = 2000, seed: int = 0) -> Estimate:
+    """Pooled ratio Σ numerators / Σ denominators over units, with a 95 % percentile bootstrap interval (units
+    drawn with replacement, a fixed seed so a table is reproducible). `minus` = (numerators, denominators) of a
+    second ratio on the same units: the paired difference of the two, resampled together."""
+    num, den = np.asarray(numerators, dtype=float), np.asarray(denominators, dtype=float)
+    if num.shape != den.shape or num.ndim != 1 or len(num) == 0:
+        raise ValueError(f"ratio_interval needs equal non-empty 1-D counts, got {num.shape} and {den.shape}")
+    other = None if minus is None else (np.asarray(minus[0], dtype=float), np.asarray(minus[1], dtype=float))
+    if other is not None and (other[0].shape != num.shape or other[1].shape != num.shape):
+        raise ValueError(f"ratio_interval: the paired ratio's counts {other[0].shape} do not match {num.shape}")
+
+    def pooled(index: np.ndarray) -> np.ndarray:  # (r, n) unit draws → (r,) ratio (difference)
+        value = num[index].sum(-1) / np.maximum(den[index].sum(-1), 1e-12)
+        return value if other is None else value - other[0][index].sum(-1) / np.maximum(other[1][index].sum(-1), 1e-12)
+
+    n = len(num)
+    point = float(pooled(np.arange(n)[None])[0])
+    if n == 1:
+        return Estimate(point, -math.inf, math.inf, 1)
+    draws = pooled(np.random.default_rng(seed).integers(0, n, size=(resamples, n)))
+    return Estimate(point, float(np.quantile(draws, 0.025)), float(np.quantile(draws, 0.975)), n)

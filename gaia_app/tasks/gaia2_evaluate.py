@@ -16,6 +16,8 @@ conditioning boxes projected into each camera, for
                                 the second pass sees those tokens alone (the report's saving)
     ..., full second pass       the same regions guided from a full unconditional pass (the straightforward variant)
     model, agents dropped       generated with the agent condition dropped (the floor)
+Each IoU carries a 95 % interval (scenes resampled), and the guided rows their paired difference to plain CFG on the
+same scenes and noise.
 Action adherence (front camera): GAIA-1's controllability protocol, contrast errors against a re-simulated
 ceiling, a floor with actions dropped and the real continuation (gaia_app/tasks/gaia2_actions.py).
 Fidelity (every camera; the metrics of `evaluate.metrics`, shared with GAIA-1's mode=evaluate and scored by the same
@@ -45,9 +47,9 @@ from tqdm.auto import tqdm
 from gaia_app.data.latent_cache import LatentClip
 from gaia_app.data.synthetic.generate import SyntheticSample
 from gaia_app.data.transforms import to_float
-from gaia_app.eval.agent_iou import agent_iou, train_agent_probe
+from gaia_app.eval.agent_iou import agent_overlap, train_agent_probe
 from gaia_app.eval.cross_view import overlapping_pairs, seam_errors
-from gaia_app.eval.intervals import mean_interval
+from gaia_app.eval.intervals import mean_interval, ratio_interval
 from gaia_app.eval.report import ARROWS
 from gaia_app.models.gaia2.conditioning import project_boxes
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline
@@ -96,11 +98,30 @@ def train_probes_for(cfg: DictConfig, frames: int) -> tuple[Any, Any, dict[str, 
     return segmentation, dynamics, {"agent_probe": agent_fit, "action_probe": action_fit}
 
 
-def iou_row(probe: Any, videos: list[torch.Tensor], truth: list[torch.Tensor], boxes: list[torch.Tensor]) -> dict[str, float]:
-    """Pooled IoU of the probe's masks on videos (v, T, 3, H, W) with true agent masks and with the box masks."""
-    frames = torch.stack(videos).flatten(0, 1)
-    return {"iou_agent_masks": agent_iou(probe, frames, torch.stack(truth).flatten(0, 1)),
-            "iou_conditioning_boxes": agent_iou(probe, frames, torch.stack(boxes).flatten(0, 1))}
+def scene_overlaps(probe: Any, videos: list[torch.Tensor], masks: list[torch.Tensor]) -> tuple[list[int], list[int]]:
+    """Per scene, the (intersection, union) pixel counts of the probe's masks on its video (v, T, 3, H, W) with its
+    masks (v, T, H, W)."""
+    counts = [agent_overlap(probe, video, mask) for video, mask in zip(videos, masks)]
+    return [i for i, _ in counts], [u for _, u in counts]
+
+
+def iou_rows(probe: Any, rows: dict[str, list[torch.Tensor]], truth: list[torch.Tensor], boxes: list[torch.Tensor],
+             reference: str | None) -> dict[str, dict[str, Any]]:
+    """Per row: the pooled IoU with the true agent masks and with the box masks, each with its interval over scenes,
+    and for the guided rows other than `reference` their paired difference to it."""
+    overlaps = {name: {"iou_agent_masks": scene_overlaps(probe, videos, truth),
+                       "iou_conditioning_boxes": scene_overlaps(probe, videos, boxes)} for name, videos in rows.items()}
+    table: dict[str, dict[str, Any]] = {}
+    for name, counts in overlaps.items():
+        table[name] = {}
+        for metric, (intersections, unions) in counts.items():
+            estimate = ratio_interval(intersections, unions)
+            table[name][metric] = estimate.mean
+            table[name][f"{metric}_interval"] = estimate.as_dict()
+            if reference is not None and "CFG" in name and name != reference:
+                difference = ratio_interval(intersections, unions, minus=overlaps[reference][metric])
+                table[name][f"{metric}_minus_plain"] = difference.as_dict()
+    return table
 
 
 def agent_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
@@ -136,8 +157,9 @@ def agent_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Syn
             x = world.from_scratch(shape, cond.without(*drop), torch.Generator(real.device).manual_seed(noise_seed))
             rows[name].append(pipeline.decode(x)[0].cpu())
         world.guidance = plain
+    reference = next(iter(guided)) if e.cfg_scale else None
     table = {"scenes": len(scenes), "latent_steps": steps, "frames": frames,
-             "rows": {name: iou_row(probe, videos, truth, boxes) for name, videos in rows.items()}}
+             "rows": iou_rows(probe, rows, truth, boxes, reference)}
     return table, {name: rows[name] for name in SHARED_VIDEOS}
 
 
@@ -221,10 +243,12 @@ def markdown(results: dict[str, Any]) -> str:
     lines.append("")
     agents = results["agents"]
     lines += [f"Agent control ({agents['scenes']} held-out scenes × {len(results['cameras'])} cameras × "
-             f"{agents['frames']} frames, generated from scratch)", "",
-             "| frames | IoU with agent masks ↑ | IoU with conditioning boxes ↑ |", "|---|---:|---:|"]
-    lines += [f"| {name} | {row['iou_agent_masks']:.3f} | {row['iou_conditioning_boxes']:.3f} |"
-              for name, row in agents["rows"].items()]
+             f"{agents['frames']} frames, generated from scratch; pooled IoU [95 % interval, scenes resampled]; guided "
+             "rows: paired difference to plain CFG on the same scenes and noise)", "",
+             "| frames | IoU with agent masks ↑ | IoU with conditioning boxes ↑ | agent masks − plain CFG |",
+             "|---|---:|---:|---:|"]
+    lines += [f"| {name} | {iou_cell(row, 'iou_agent_masks')} | {iou_cell(row, 'iou_conditioning_boxes')} | "
+              f"{difference_cell(row.get('iou_agent_masks_minus_plain'))} |" for name, row in agents["rows"].items()]
     lines += ["", *gaia2_actions.markdown(results["actions"])]
     views = results["cross_view"]
     lines += ["", f"Cross-view consistency ({views['scenes']} held-out scenes × {views['frames']} frames, camera pairs "
@@ -233,6 +257,17 @@ def markdown(results: dict[str, Any]) -> str:
               "| frames | seam error ↓ |", "|---|---:|"]
     lines += [f"| {name} | {row['mean']:.4f} ± {(row['high'] - row['low']) / 2:.4f} |" for name, row in views["rows"].items()]
     return "\n".join(lines) + "\n"
+
+
+def iou_cell(row: dict[str, Any], metric: str) -> str:
+    interval = row.get(f"{metric}_interval")
+    return f"{row[metric]:.3f}" + (f" [{interval['low']:.3f}, {interval['high']:.3f}]" if interval else "")
+
+
+def difference_cell(difference: dict[str, float] | None) -> str:
+    if difference is None:
+        return ""
+    return f"{difference['mean']:+.3f} [{difference['low']:+.3f}, {difference['high']:+.3f}]"
 
 
 def gaia2_evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
