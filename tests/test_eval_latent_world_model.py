@@ -63,3 +63,17 @@ def test_condition_gain_reads_a_weights_folder(checkpoints, monkeypatch, capsys)
     module.main()
     out = capsys.readouterr().out
     assert re.search(r"action discrimination with agents +[+-][\d.]+ \[[+-][\d.]+, [+-][\d.]+\]", out), out
+
+
+def test_gaia2_probe_quality_scores_the_ceiling_against_the_reference() -> None:
+    """benchmarks/gaia2_probe_quality.py: the evaluation's action probe, model-free, on two scenes."""
+    spec = importlib.util.spec_from_file_location("gaia2_probe_quality", ROOT / "benchmarks" / "gaia2_probe_quality.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    result = module.probe_quality(["model.evaluate.contexts=2", "model.evaluate.probe_clips=4",
+                                   "model.evaluate.probe_steps=3"])
+    for metric in ("speed_contrast", "curvature_contrast"):
+        row = result[metric]
+        assert row["reference"] > 0 and row["ratio"] == pytest.approx(row["ceiling"] / row["reference"])
+    # the reference ignores the commands: its probed contrast is ~0, so its error is the commanded difference
+    assert result["curvature_contrast"]["reference"] == pytest.approx(0.04, abs=0.01)

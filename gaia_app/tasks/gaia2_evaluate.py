@@ -242,9 +242,10 @@ def markdown(results: dict[str, Any]) -> str:
               for row, values in fidelity["rows"].items()]
     lines.append("")
     agents = results["agents"]
-    lines += [f"Agent control ({agents['scenes']} held-out scenes × {len(results['cameras'])} cameras × "
+    title = (f"Agent control ({agents['scenes']} held-out scenes × {len(results['cameras'])} cameras × "
              f"{agents['frames']} frames, generated from scratch; pooled IoU [95 % interval, scenes resampled]; guided "
-             "rows: paired difference to plain CFG on the same scenes and noise)", "",
+             "rows: paired difference to plain CFG on the same scenes and noise)")
+    lines += [title, "",
              "| frames | IoU with agent masks ↑ | IoU with conditioning boxes ↑ | agent masks − plain CFG |",
              "|---|---:|---:|---:|"]
     lines += [f"| {name} | {iou_cell(row, 'iou_agent_masks')} | {iou_cell(row, 'iou_conditioning_boxes')} | "

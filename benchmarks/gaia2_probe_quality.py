@@ -1,0 +1,73 @@
+"""Can the GAIA-2 action probe read the commands? Model-free check of gaia_app/tasks/gaia2_actions.py.
+
+Trains the inverse-dynamics probe as `generate.py model=gaia2 mode=evaluate` does (the settings of
+`model.evaluate`, given as Hydra overrides), then scores the held-out scenes without any world model: the ceiling
+(each scene re-simulated with each commanded action) against the reference (the real continuation, which ignores
+the commands and so scores what a model that ignores them would). The evaluation's probe check asks
+ceiling ≤ ½ reference for the speed and curvature contrast errors.
+
+    python benchmarks/gaia2_probe_quality.py model.evaluate.contexts=16 model.evaluate.probe_clips=96 \
+        model.evaluate.probe_steps=1500                       # the shipped weights' evaluation protocol
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+
+from gaia_app.data.transforms import to_float
+from gaia_app.eval.controllability import probe_clips
+from gaia_app.tasks import gaia2_actions
+from gaia_app.tasks.controllability import CONTRASTS, commanded_actions, error_row
+from gaia_app.tasks.gaia2_evaluate import rig_samples
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+TEMPORAL = 4  # frames per latent step of the shipped GAIA-2 tokenizer: the evaluation's frames are model.steps · 4
+
+
+def probe_quality(overrides: list[str]) -> dict[str, dict[str, float]]:
+    """{metric: {ceiling, reference, ratio}} of contrast errors, and the probe's fit, for `overrides` of generate.yaml."""
+    GlobalHydra.instance().clear()  # a caller's Hydra (tests compose many configs) must not block this one
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("generate", ["model=gaia2", "data=synthetic_rig", *overrides])
+    g, e = cfg.model, cfg.model.evaluate
+    first, frames = g.context_steps * TEMPORAL, g.steps * TEMPORAL
+    started = time.perf_counter()
+    probe, fit = gaia2_actions.train_action_probe(cfg, frames)
+    samples = rig_samples(cfg, cfg.context.seed, e.contexts, frames)
+    rate = float(samples[0].clip.fps)
+    contexts = probe_clips([s.clip for s in samples], rate, frames)
+    commands = [tuple(c) for c in e.commands]
+    commanded = commanded_actions(contexts, first, frames - first, rate, commands)
+    ceiling = [to_float(torch.from_numpy(gaia2_actions.resimulated(cfg, k % len(samples), commanded[k].numpy()
+                                                                   .astype("float64")).frames[0]))
+               for k in range(len(commanded))]
+    videos = {"ceiling": torch.stack(ceiling), "reference": torch.cat([contexts.frames] * len(commands))}
+    rows = {name: error_row(probe, video, commanded, first + 1, len(commands)) for name, video in videos.items()}
+    out = {m: {"ceiling": rows["ceiling"][m]["mean"], "reference": rows["reference"][m]["mean"]} for m in CONTRASTS}
+    for values in out.values():
+        values["ratio"] = values["ceiling"] / values["reference"]
+    out["fit"] = {**fit, "seconds": time.perf_counter() - started}
+    return out
+
+
+def main() -> None:
+    overrides = sys.argv[1:]
+    if any(a.startswith("-") for a in overrides):
+        sys.exit(__doc__)
+    result = probe_quality(overrides)
+    print(f"overrides: {' '.join(overrides) or '(none)'}; {result['fit']['seconds']:.0f} s")
+    print("| contrast error | ceiling | reference | ceiling / reference (want ≤ 0.5) |")
+    print("|---|---:|---:|---:|")
+    for metric in CONTRASTS:
+        r = result[metric]
+        print(f"| {metric} | {r['ceiling']:.4f} | {r['reference']:.4f} | {r['ratio']:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
