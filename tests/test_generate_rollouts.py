@@ -275,7 +275,7 @@ def test_gallery_of_the_showcase_copies_its_strips(checkpoints, tmp_path: Path) 
     assert written[:2] == [tmp_path / "gallery" / "commands.png", tmp_path / "gallery" / "prompts.png"]
     commands = cv2.imread(str(written[0]))
     assert commands.shape == cv2.imread(str(demo / "showcase" / "commands" / "strip.png")).shape
-    assert commands.shape[0] == 5 * 2 * 32  # real continuation + 4 commands, 2× upscaled
+    assert commands.shape[0] == 6 * 2 * 32  # real continuation raw and tokenized + 4 commands, 2× upscaled
 
 
 def test_evaluate_mode_scores_model_ceiling_and_floor(checkpoints, tmp_path: Path) -> None:

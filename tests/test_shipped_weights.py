@@ -167,12 +167,12 @@ def test_showcase_steers_one_context_four_ways_and_prompts_against_none(shipped:
     assert commanded.shape == (4, 6, 2)
     assert commanded[0, -1, 0] < commanded[0, 2, 0] and commanded[1, -1, 0] > commanded[1, 2, 0]  # brake, accelerate
     assert commanded[2, 2:, 1].min() > 0 > commanded[3, 2:, 1].max()  # left, right
-    for panel, rows in (("commands", 5), ("prompts", 3)):
+    for panel, rows in (("commands", 6), ("prompts", 3)):  # commands: the real continuation raw and tokenized
         assert video_info(tmp_path / panel / "grid.mp4").num_frames == (6 if panel == "commands" else 4)
         png = cv2.imread(str(tmp_path / panel / "strip.png"))
         assert png.shape[0] == rows * 32 * 2  # one row per video, upscaled 2×
     entities = {chunk.entity_path for chunk in RrdReader(str(tmp_path / "showcase.rrd")).stream().collect().stream().to_chunks()}
-    assert {"/actions/speed/brake_straight", "/actions/curvature/keep_left", "/commands/real",
+    assert {"/actions/speed/brake_straight", "/actions/curvature/keep_left", "/commands/real", "/commands/real_tokenized",
             "/prompts/It_is_night"} <= entities
     assert "| brake / straight |" in (tmp_path / "showcase.md").read_text()
 

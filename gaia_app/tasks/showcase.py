@@ -2,8 +2,10 @@
 
 From the shipped weights (weights=gaia1) or checkpoints, in one run:
 - commands/: one held-out context, then `showcase.commands` (brake, accelerate, left, right) each for the same
-  `seconds`; grid.mp4 (real continuation | one future per command) and strip.png (one labelled row per command,
-  context frames marked green, generated red);
+  `seconds`; grid.mp4 (real continuation | the real continuation through the tokenizer | one future per command)
+  and strip.png (one labelled row each, context frames marked green, generated red). The second row is the best
+  any future can look: every future is decoded from tokens, and the small tokenizer redraws what its codebook
+  lacks (houses come back as hedges, docs/generate.md), context frames included;
 - prompts/: generation from text alone, no prompt against each of `showcase.prompts` (night, snow); grid.mp4 and
   strip.png;
 - showcase.rrd: both, with the commanded speed and curvature of every future plotted.
@@ -33,6 +35,8 @@ from gaia_app.viz.blueprints import showcase_blueprint
 from gaia_app.viz.media import to_hwc_uint8, video_grid
 
 STRIPE = 2  # pixels of the context / generated marker at the top of each frame
+REAL_ROWS = ["real continuation", "real, through the tokenizer"]  # the rows above the futures, and their entities
+REAL_ENTITIES = ["real", "real_tokenized"]
 
 
 def marked(frames: torch.Tensor, context: int) -> np.ndarray:
@@ -63,7 +67,8 @@ def write_panel(folder: Path, videos: np.ndarray, names: list[str], fps: float) 
 
 
 def command_panel(cfg: DictConfig, pipeline: Gaia1Pipeline, generator: torch.Generator) -> dict[str, Any]:
-    """The held-out context clip, then one future per command (and the real continuation)."""
+    """The held-out context clip, then one future per command (and the real continuation, raw and through the
+    tokenizer and the renderer the futures use)."""
     rate, (height, width) = pipeline.rate, pipeline.image_size
     t0, frames = cfg.context.frames, future_frames(cfg.seconds, rate)
     clip = probe_clips(world_clips(cfg.context.seed, 1, height, width, t0 + frames, rate, start=cfg.context.index),
@@ -72,8 +77,9 @@ def command_panel(cfg: DictConfig, pipeline: Gaia1Pipeline, generator: torch.Gen
     actions = commanded_actions(clip, t0, frames, rate, commands)  # (C, t, 2)
     context = clip.frames[:, :t0].repeat(len(commands), 1, 1, 1, 1)
     futures = rollout_frames(pipeline, context, frames, len(commands), None, actions, generator)
-    return {"real": clip.frames, "futures": futures, "actions": actions, "context": t0,
-            "names": ["real continuation"] + [f"{speed} / {curvature}" for speed, curvature in commands]}
+    through = pipeline.render(pipeline.encode(clip.frames[0])[None], generator)[0]
+    return {"real": torch.cat([clip.frames, through]), "futures": futures, "actions": actions, "context": t0,
+            "names": REAL_ROWS + [f"{speed} / {curvature}" for speed, curvature in commands]}
 
 
 def prompt_panel(cfg: DictConfig, pipeline: Gaia1Pipeline, generator: torch.Generator) -> dict[str, Any]:
@@ -96,9 +102,10 @@ def log_showcase(path: Path, commands: dict[str, Any], prompts: dict[str, Any], 
     """Every video on the `frame` timeline (the world model's steps) and each command's speed and curvature as plots."""
     rec = rr.RecordingStream("gaia_app", recording_id=f"showcase-{path.parent.name}")
     rec.save(str(path))
-    rec.send_blueprint(showcase_blueprint([entity(n) for n in commands["names"][1:]], [entity(n) for n in prompts["names"]]))
-    videos = {"commands/real": commands["real"][0]}
-    videos |= {f"commands/{name}": video for name, video in zip(commands["names"][1:], commands["futures"])}
+    steered = commands["names"][len(REAL_ROWS):]
+    rec.send_blueprint(showcase_blueprint([entity(n) for n in steered], [entity(n) for n in prompts["names"]]))
+    videos = {f"commands/{name}": video for name, video in zip(REAL_ENTITIES, commands["real"])}
+    videos |= {f"commands/{name}": video for name, video in zip(steered, commands["futures"])}
     videos |= {f"prompts/{name}": video for name, video in zip(prompts["names"], prompts["futures"])}
     for t in range(max(len(v) for v in videos.values())):
         rec.set_time("frame", sequence=t)
@@ -107,7 +114,7 @@ def log_showcase(path: Path, commands: dict[str, Any], prompts: dict[str, Any], 
             if t < len(video):
                 panel, title = name.split("/", 1)
                 rec.log(f"{panel}/{entity(title)}", rr.Image(to_hwc_uint8(video[t])))
-        for name, actions in zip(commands["names"][1:], commands["actions"]):
+        for name, actions in zip(steered, commands["actions"]):
             if t < len(actions):
                 key = entity(name)
                 rec.log(f"actions/speed/{key}", rr.Scalars(float(actions[t, 0])))
@@ -129,7 +136,7 @@ def showcase(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         files += write_panel(stage / "prompts", marked(prompts["futures"], 0), prompts["names"], pipeline.rate)
         log_showcase(stage / "showcase.rrd", commands, prompts, pipeline.rate)
     summary = {"context_frames": t0, "generated_frames": int(commands["futures"].shape[1]) - t0,
-               "fps": pipeline.rate, "commands": commands["names"][1:], "prompts": prompts["names"][1:],
+               "fps": pipeline.rate, "commands": commands["names"][len(REAL_ROWS):], "prompts": prompts["names"][1:],
                "commanded_actions": commands["actions"].tolist(), "files": files + ["showcase.rrd"]}
     atomic_write_text(run_dir / "showcase.md", markdown(summary))
     return summary

@@ -115,9 +115,11 @@ def rollout_blueprint(num_futures: int, has_real: bool, has_actions: bool, has_g
 
 
 def showcase_blueprint(commands: Sequence[str], prompts: Sequence[str]) -> rrb.Blueprint:
-    """`generate.py mode=showcase` (entity paths of gaia_app/tasks/showcase.py): the real continuation and one future
-    per command side by side, the prompt rollouts below, then the commanded speed and curvature of every future."""
-    steered = [rrb.Spatial2DView(origin="/commands/real", name="real continuation")] + [
+    """`generate.py mode=showcase` (entity paths of gaia_app/tasks/showcase.py): the real continuation (raw and through
+    the tokenizer) and one future per command side by side, the prompt rollouts below, then the commanded speed and
+    curvature of every future."""
+    steered = [rrb.Spatial2DView(origin="/commands/real", name="real continuation"),
+               rrb.Spatial2DView(origin="/commands/real_tokenized", name="real, through the tokenizer")] + [
         rrb.Spatial2DView(origin=f"/commands/{name}", name=name) for name in commands]
     prompted = [rrb.Spatial2DView(origin=f"/prompts/{name}", name=name) for name in prompts]
     series = [rrb.TimeSeriesView(origin="/actions/speed", name="commanded speed (m/s)"),
