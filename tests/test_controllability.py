@@ -17,12 +17,14 @@ from gaia_app.eval.controllability import (
     load_probes,
     phase_clips,
     probe_clips,
+    probed_actions,
     save_probes,
+    strided_actions,
     train_probes,
 )
 from gaia_app.eval.intervals import mean_interval, ratio_interval, share_interval, t_quantile
 from gaia_app.models.probes import ATTRIBUTES, InverseDynamicsProbe, SceneAttributeProbe
-from gaia_app.tasks.controllability import drive, probe_training_data, random_command
+from gaia_app.tasks.controllability import drive, error_row, probe_training_data, random_command
 
 
 @pytest.fixture(scope="module")
@@ -40,6 +42,45 @@ def test_probe_clips_carry_frames_actions_and_labels(clips) -> None:
 def test_probes_learn_a_tiny_batch(clips) -> None:
     _, _, fit = train_probes(clips, steps=120, batch=8, lr=3e-3, progress=False)
     assert fit["last_loss"] < fit["first_loss"] / 3, fit
+
+
+def test_strided_probe_learns_a_tiny_batch_and_refuses_a_stride_the_clips_cannot_hold(clips) -> None:
+    _, _, fit = train_probes(clips, steps=120, batch=8, lr=3e-3, progress=False, stride=2)
+    assert fit["last_loss"] < fit["first_loss"] / 3, fit
+    with pytest.raises(ValueError, match=r"probe stride 4: expected 1 ≤ stride < 4"):
+        train_probes(clips, steps=1, progress=False, stride=4)
+
+
+class FrameGap(InverseDynamicsProbe):
+    """'Speed' = value of the second frame minus the first's, 'curvature' = the first frame's value."""
+
+    def forward(self, pair: torch.Tensor) -> torch.Tensor:
+        first, second = pair[:, 0].mean(dim=(1, 2, 3)), pair[:, 1].mean(dim=(1, 2, 3))
+        return torch.stack([second - first, first], dim=1)
+
+
+def test_a_strided_probe_reads_frames_stride_apart_against_the_mean_action_between_them() -> None:
+    frames = torch.arange(6.0)[None, :, None, None, None].expand(1, 6, 3, 4, 4)  # frame i holds the value i
+    probed = probed_actions(FrameGap(), frames, start=3, stride=2)  # pairs (1, 3), (2, 4), (3, 5)
+    torch.testing.assert_close(probed[0], torch.tensor([[2.0, 1.0], [2.0, 2.0], [2.0, 3.0]]))
+    actions = torch.arange(12.0).view(1, 6, 2)  # a_i = (2i, 2i + 1)
+    strided = strided_actions(actions, 2)
+    torch.testing.assert_close(strided[0, 2], (actions[0, 1] + actions[0, 2]) / 2)  # a_1, a_2 move frame 1 to 3
+    torch.testing.assert_close(strided[0, :1], actions[0, :1])  # no pair ends at frame 1
+    assert strided_actions(actions, 1) is actions
+    # error_row compares each probed pair with the mean action it spans: a probe that reads the mean exactly scores 0
+    commanded = torch.tensor([[5.0, 0.0]]).repeat(4, 6, 1)  # 2 commands × 2 contexts, command-major
+    commanded[2:] = torch.tensor([9.0, 0.02])
+    commanded[..., 0] += torch.arange(6.0)  # speeds that change every step: the mean over the pair matters
+
+    class Exact(InverseDynamicsProbe):
+        def forward(self, pair: torch.Tensor) -> torch.Tensor:
+            return pair[:, 1, :2, 0, 0]  # the frame carries its (speed, curvature) in two channels
+
+    video = torch.zeros(4, 6, 3, 2, 2)
+    video[:, :, :2] = strided_actions(commanded, 2)[:, :, :, None, None].roll(1, dims=1)  # frame i: the mean into i
+    row = error_row(Exact(), video, commanded, start=3, commands=2, stride=2)
+    assert row["speed_mae"]["mean"] == pytest.approx(0.0) and row["curvature_mae"]["mean"] == pytest.approx(0.0)
 
 
 class ConstantDynamics(InverseDynamicsProbe):

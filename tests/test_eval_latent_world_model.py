@@ -75,5 +75,29 @@ def test_gaia2_probe_quality_scores_the_ceiling_against_the_reference() -> None:
     for metric in ("speed_contrast", "curvature_contrast"):
         row = result[metric]
         assert row["reference"] > 0 and row["ratio"] == pytest.approx(row["ceiling"] / row["reference"])
+        assert row["target"] == pytest.approx((row["reference"] + row["ceiling"]) / 2) and row["tokenized"] >= 0
     # the reference ignores the commands: its probed contrast is ~0, so its error is the commanded difference
     assert result["curvature_contrast"]["reference"] == pytest.approx(0.04, abs=0.01)
+
+
+def test_gaia2_action_adherence_scores_folders_side_by_side_on_one_probe(tmp_path) -> None:
+    """benchmarks/gaia2_action_adherence.py: a copy of the shipped folder gets the same table as the original (one
+    probe, the same scenes and noise), and the files carry one table per folder."""
+    import shutil
+
+    from gaia_app.utils.shipped import shipped_folder
+
+    spec = importlib.util.spec_from_file_location("gaia2_action_adherence", ROOT / "benchmarks" / "gaia2_action_adherence.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    copy = shutil.copytree(shipped_folder("gaia2"), tmp_path / "copy")
+    result = module.main(["--weights", "gaia2", str(copy), "--out", str(tmp_path / "out"), "model.evaluate.contexts=2",
+                          "model.evaluate.probe_clips=2", "model.evaluate.probe_steps=2", "model.sampler.steps=2"])
+    original, copied = result["tables"]["gaia2"], result["tables"][str(copy)]
+    assert original["probe_stride"] == 2 and original["scored_steps"] == 6
+    for name in ("ceiling", "model", "floor"):
+        assert original["rows"][name]["curvature_contrast"] == copied["rows"][name]["curvature_contrast"]
+    table = (tmp_path / "out" / "action_adherence.md").read_text()
+    assert table.count("| model, commanded actions |") == 2 and f"### weights={copy}" in table
+    with pytest.raises(ValueError, match="probe_stride=5"):
+        module.main(["--weights", "gaia2", "--", "model.evaluate.probe_stride=5"])

@@ -243,7 +243,8 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     assert "agent masks − plain CFG" in table
     assert "| probe check: ceiling ≤ ½ floor and ≤ ½ reference |" in table
     assert "| model, each camera generated alone (floor) |" in table
-    assert results["actions"]["scored_steps"] == 7  # 8 generated frames → 7 pairs after the first
+    # 8 generated frames, the probe reads pairs 2 frames apart (model.evaluate.probe_stride): 6 pairs of generated frames
+    assert results["actions"]["probe_stride"] == 2 and results["actions"]["scored_steps"] == 6
 
     # one table with a GAIA-1 evaluation run (its evaluation.json layout, tasks/evaluate.py)
     gaia1 = tmp_path / "gaia1"

@@ -20,9 +20,10 @@ TINY = ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "data=synthetic_frame
 @pytest.fixture(scope="module")
 def trained_run(tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("run")
-    cfg = compose_config("train", [*TINY, "trainer.max_steps=4", "callbacks.model_checkpoint.every_n_train_steps=2"], run_dir)
+    # 5 steps, checkpoints every 2: the final step is off the grid and must still reach last.ckpt
+    cfg = compose_config("train", [*TINY, "trainer.max_steps=5", "callbacks.model_checkpoint.every_n_train_steps=2"], run_dir)
     out = train(cfg)
-    assert out["trainer"].global_step == 4
+    assert out["trainer"].global_step == 5
     return run_dir
 
 
@@ -32,12 +33,13 @@ def test_run_dir_holds_checkpoint_config_and_recording(trained_run: Path) -> Non
     assert (trained_run / "run.rrd").stat().st_size > 0
     ckpt = torch.load(trained_run / "checkpoints" / "last.ckpt", weights_only=False)
     assert ckpt["hyper_parameters"]["model_cfg"]["_target_"].endswith("ImageTokenizerModule")
+    assert ckpt["global_step"] == 5  # the final step, not the last multiple of every_n_train_steps (4)
 
 
 def test_resume_continues_from_last_checkpoint(trained_run: Path) -> None:
     cfg = compose_config("train", [*TINY, "trainer.max_steps=6", "ckpt_path=last"], trained_run)
     out = train(cfg)
-    # resumed at step 4, so only two new steps ran
+    # resumed at step 5, so only one new step ran
     assert out["trainer"].global_step == 6
     assert out["model"].trainer.fit_loop.epoch_loop._batches_that_stepped == 6
 

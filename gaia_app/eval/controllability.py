@@ -112,22 +112,26 @@ def jitter(pair: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
 
 
 def train_probes(data: ProbeClips, steps: int = 1500, batch: int = 32, lr: float = 2e-3, seed: int = 0,
-                 progress: bool = True) -> tuple[InverseDynamicsProbe, SceneAttributeProbe, dict[str, float]]:
+                 progress: bool = True, stride: int = 1) -> tuple[InverseDynamicsProbe, SceneAttributeProbe, dict[str, float]]:
     """Fit both probes on random frame pairs / frames of `data` (AdamW, cosine decay to lr/20); returns them in
-    eval mode and their first/last losses."""
+    eval mode and their first/last losses. The inverse-dynamics probe reads pairs `stride` frames apart and learns
+    the mean action over the steps between them (`strided_actions`)."""
     generator = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
     dynamics, scene = InverseDynamicsProbe(), SceneAttributeProbe()
     optim = torch.optim.AdamW([*dynamics.parameters(), *scene.parameters()], lr=lr, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optim, max(1, steps), eta_min=lr / 20)
     n, t = data.frames.shape[:2]
+    if not 1 <= stride < t:
+        raise ValueError(f"probe stride {stride}: expected 1 ≤ stride < {t} (the probe clips' frames)")
+    moves = strided_actions(data.actions, stride)
     losses = []
     for _ in tqdm(range(steps), desc="probes", disable=not progress):
         clip = torch.randint(n, (batch,), generator=generator)
-        step = torch.randint(1, t, (batch,), generator=generator)
-        pair = torch.stack([data.frames[clip, step - 1], data.frames[clip, step]], dim=1)
+        step = torch.randint(stride, t, (batch,), generator=generator)
+        pair = torch.stack([data.frames[clip, step - stride], data.frames[clip, step]], dim=1)
         labels = {name: data.labels[name][clip, step] for name in ATTRIBUTES}
-        pair, actions = augment_pairs(pair, data.actions[clip, step - 1], generator)
+        pair, actions = augment_pairs(pair, moves[clip, step - 1], generator)
         loss = dynamics.loss(jitter(pair, generator), actions) + scene.loss(pair[:, 1], labels)
         optim.zero_grad()
         loss.backward()
@@ -137,10 +141,22 @@ def train_probes(data: ProbeClips, steps: int = 1500, batch: int = 32, lr: float
     return dynamics.eval(), scene.eval(), {"first_loss": float(np.mean(losses[:10])), "last_loss": float(np.mean(losses[-10:]))}
 
 
+def strided_actions(actions: torch.Tensor, stride: int) -> torch.Tensor:
+    """(b, t, 2) per-step actions (a_{i-1} leads to frame i) → the same layout for pairs `stride` frames apart: row
+    i − 1 holds the mean of a_{i-stride} … a_{i-1}, what moves frame i − stride to frame i (rows before stride − 1
+    keep their own step's action). Stride 1 returns `actions`."""
+    if stride == 1:
+        return actions
+    windows = actions.unfold(1, stride, 1).mean(dim=-1)  # (b, t − stride + 1, 2): window j covers a_j … a_{j+stride-1}
+    return torch.cat([actions[:, : stride - 1], windows], dim=1)
+
+
 @torch.no_grad()
-def probed_actions(probe: InverseDynamicsProbe, frames: torch.Tensor, start: int) -> torch.Tensor:
-    """(b, t - start, 2) probed (speed, curvature) of the steps into frames start..t-1; frames (b, t, 3, H, W)."""
-    pairs = torch.stack([frames[:, start - 1 : -1], frames[:, start:]], dim=2)  # (b, t - start, 2, 3, H, W)
+def probed_actions(probe: InverseDynamicsProbe, frames: torch.Tensor, start: int, stride: int = 1) -> torch.Tensor:
+    """(b, t - start, 2) probed (speed, curvature) moving frame i − stride to frame i, for i = start..t-1;
+    frames (b, t, 3, H, W); start ≥ stride."""
+    t = frames.shape[1]
+    pairs = torch.stack([frames[:, start - stride : t - stride], frames[:, start:]], dim=2)  # (b, t - start, 2, 3, H, W)
     return probe(pairs.flatten(0, 1)).view(*pairs.shape[:2], 2)
 
 

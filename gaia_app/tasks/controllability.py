@@ -57,6 +57,7 @@ from gaia_app.eval.controllability import (
     probed_actions,
     realised_contrasts,
     save_probes,
+    strided_actions,
     train_probes,
 )
 from gaia_app.eval.intervals import mean_interval, share_interval
@@ -218,12 +219,13 @@ def command_discrimination(pipeline: Gaia1Pipeline, real: torch.Tensor, commande
     return rows
 
 
-def error_row(probe, video: torch.Tensor, commanded: torch.Tensor, start: int, commands: int) -> dict[str, Any]:
+def error_row(probe, video: torch.Tensor, commanded: torch.Tensor, start: int, commands: int,
+              stride: int = 1) -> dict[str, Any]:
     """Of a command-major batch, with 95 % intervals over contexts: the contrast errors (speed: accelerate vs
     brake, curvature: left vs right, gaia_app.eval.controllability.contrast_errors), the MAE against every command,
-    and the MAE per command."""
-    probed = probed_actions(probe, video, start).unflatten(0, (commands, -1))  # (C, N, s, 2)
-    wanted = commanded[:, start - 1 : -1].unflatten(0, (commands, -1))
+    and the MAE per command. The probe reads frame pairs `stride` apart (eval.controllability.strided_actions)."""
+    probed = probed_actions(probe, video, start, stride).unflatten(0, (commands, -1))  # (C, N, s, 2)
+    wanted = strided_actions(commanded, stride)[:, start - 1 : -1].unflatten(0, (commands, -1))
     errors = (probed - wanted).abs().mean(dim=2)  # (C, N, 2)
     per_context = errors.mean(dim=0)
     contrast = contrast_errors(probed, wanted)

@@ -71,8 +71,18 @@ def train_action_probe(cfg: DictConfig, frames: int) -> tuple[InverseDynamicsPro
     world = rig_world(cfg, e.probe_seed, e.probe_clips, frames, cameras=[cfg.data.source.cameras[0]],
                       driven_share=e.probe_driven_share, **UNIFORM_MIX)
     clips = [world[i] for i in tqdm(range(e.probe_clips), desc="action probe clips")]
-    dynamics, _, fit = train_probes(probe_clips(clips, clips[0].fps, frames), e.probe_steps, seed=cfg.seed)
+    dynamics, _, fit = train_probes(probe_clips(clips, clips[0].fps, frames), e.probe_steps, seed=cfg.seed,
+                                    stride=probe_stride(cfg))
     return dynamics, fit
+
+
+def probe_stride(cfg: DictConfig) -> int:
+    """`model.evaluate.probe_stride`: frames between the two frames the probe reads; ValueError unless in 1..4 (a
+    latent step of the shipped tokenizer is 4 frames; the scored pairs must start after the context)."""
+    stride = cfg.model.evaluate.probe_stride
+    if not isinstance(stride, int) or not 1 <= stride <= 4:
+        raise ValueError(f"model.evaluate.probe_stride={stride!r}: expected a whole number of frames in 1..4")
+    return stride
 
 
 def resimulated(cfg: DictConfig, index: int, actions: np.ndarray) -> Clip:
@@ -86,6 +96,7 @@ def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Sy
     """Rows, targets and probe checks of the action-adherence table (module docstring)."""
     g = cfg.model
     check_action_agents(cfg)
+    stride = probe_stride(cfg)
     first, frames = g.context_steps * pipeline.temporal, g.steps * pipeline.temporal
     rate = float(scenes[0][0].clip.fps)
     contexts = probe_clips([sample.clip for sample, _ in scenes], rate, frames)
@@ -111,11 +122,13 @@ def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Sy
             videos["floor"].append(continuation(pipeline, context, cond.without("action"), g.steps - g.context_steps, noise[i]))
     videos["floor"] = videos["floor"] * len(commands)
     videos["reference"] = list(contexts.frames) * len(commands)
-    rows = {name: error_row(probe, torch.stack(video), commanded, first + 1, len(commands)) for name, video in videos.items()}
+    # scored: pairs (i − stride, i) of generated frames only, i = first + stride … f − 1
+    rows = {name: error_row(probe, torch.stack(video), commanded, first + stride, len(commands), stride)
+            for name, video in videos.items()}
     contrasted = {metric: ["/".join(commands[high]), "/".join(commands[low])] for metric, (high, low) in zip(CONTRASTS, pairs)}
     return {"scenes": n, "commands": [list(cmd) for cmd in commands], "agents": g.evaluate.action_agents,
-            "context_frames": first,
-            "scored_steps": frames - first - 1, "rows": rows, "contrasts": contrasted, "checks": action_checks(rows)}
+            "context_frames": first, "probe_stride": stride,
+            "scored_steps": frames - first - stride, "rows": rows, "contrasts": contrasted, "checks": action_checks(rows)}
 
 
 def continuation(pipeline: Gaia2Pipeline, context: torch.Tensor, cond: Any, new_steps: int, seed: int) -> torch.Tensor:
@@ -129,7 +142,7 @@ def markdown(actions: dict[str, Any]) -> list[str]:
     speed, curvature = (" vs ".join(actions["contrasts"][m]) for m in CONTRASTS)
     return [f"Action adherence (front camera, {actions['scenes']} held-out scenes × {len(actions['commands'])} commands "
              f"({', '.join('/'.join(c) for c in actions['commands'])}), {actions['context_frames']} context frames, "
-             f"{actions['scored_steps']} scored steps each, agent boxes {actions['agents']}; ± 95 % interval over scenes. Contrast error: |probed "
+             f"{actions['scored_steps']} scored frame pairs {actions.get('probe_stride', 1)} frame(s) apart each, agent boxes {actions['agents']}; ± 95 % interval over scenes. Contrast error: |probed "
              f"difference − commanded difference| of the horizon-mean speed ({speed}) and curvature ({curvature}) of "
              "two futures of one scene; MAE: mean |probed − commanded| (diagnostic)", "",
              *action_rows_markdown(actions, ROWS)]
