@@ -63,6 +63,8 @@ def test_a_strided_probe_reads_frames_stride_apart_against_the_mean_action_betwe
     frames = torch.arange(6.0)[None, :, None, None, None].expand(1, 6, 3, 4, 4)  # frame i holds the value i
     probed = probed_actions(FrameGap(), frames, start=3, stride=2)  # pairs (1, 3), (2, 4), (3, 5)
     torch.testing.assert_close(probed[0], torch.tensor([[2.0, 1.0], [2.0, 2.0], [2.0, 3.0]]))
+    with pytest.raises(ValueError, match=r"start 1 must lie in \[stride 2, frames 6\)"):
+        probed_actions(FrameGap(), frames, start=1, stride=2)
     actions = torch.arange(12.0).view(1, 6, 2)  # a_i = (2i, 2i + 1)
     strided = strided_actions(actions, 2)
     torch.testing.assert_close(strided[0, 2], (actions[0, 1] + actions[0, 2]) / 2)  # a_1, a_2 move frame 1 to 3

@@ -156,6 +156,8 @@ def probed_actions(probe: InverseDynamicsProbe, frames: torch.Tensor, start: int
     """(b, t - start, 2) probed (speed, curvature) moving frame i − stride to frame i, for i = start..t-1;
     frames (b, t, 3, H, W); start ≥ stride."""
     t = frames.shape[1]
+    if not stride <= start < t:  # a pair must start inside the clip; a negative index would wrap around silently
+        raise ValueError(f"probed_actions: start {start} must lie in [stride {stride}, frames {t})")
     pairs = torch.stack([frames[:, start - stride : t - stride], frames[:, start:]], dim=2)  # (b, t - start, 2, 3, H, W)
     return probe(pairs.flatten(0, 1)).view(*pairs.shape[:2], 2)
 
