@@ -87,8 +87,11 @@ demo-train: install
 reproduce: install
 	$(PY) -m gaia_app.tasks.reproduce --out outputs/reference --weights gaia_app/weights/gaia1
 
+# one pytest-xdist worker per logical CPU (TEST_WORKERS=0 runs in one process); --dist loadscope keeps each test module
+# on one worker, so module-scoped fixtures (trained tiny models) are built once
+TEST_WORKERS ?= logical
 test: install-dev
-	$(PY) -m pytest $(PYTEST_ARGS)
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadscope $(PYTEST_ARGS)
 
 benchmarks: install-dev
 	$(PY) benchmarks/bench_synthetic.py

@@ -19,7 +19,9 @@ CONF_DIR = ROOT / "conf"
 SHARED_DATA = ROOT.parent / "shared" / "data"
 
 os.environ.setdefault("RERUN", "on")
-torch.set_num_threads(2)
+# Under pytest-xdist (`make test` runs one worker per core) each worker keeps to one thread: two workers of two
+# threads each would fight over the cores.
+torch.set_num_threads(1 if os.environ.get("PYTEST_XDIST_WORKER") else 2)
 
 
 def compose_config(config_name: str, overrides: list[str], output_dir: Path) -> DictConfig:
