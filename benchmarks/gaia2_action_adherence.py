@@ -1,11 +1,14 @@
-"""GAIA-2 action adherence of several weights folders side by side in one run: one action probe, the same held-out
-scenes, commands and noise for every folder. The table is the one of `generate.py model=gaia2 mode=evaluate`
-(gaia_app/tasks/gaia2_actions.py) without the other tables, so two versions of the weights compare in about a
-third of two evaluations' time. Everything after `--` is a Hydra override of generate.yaml.
+"""GAIA-2 action adherence of several weights folders, or guidance scales, side by side in one run: one action
+probe, the same held-out scenes, commands and noise for every folder and scale. The table is the one of
+`generate.py model=gaia2 mode=evaluate` (gaia_app/tasks/gaia2_actions.py) without the other tables, so two versions
+of the weights compare in about a third of two evaluations' time. `--scales` replaces model.guidance.scale by each
+of its values in turn (0: unguided). Everything after `--` is a Hydra override of generate.yaml.
 
     python benchmarks/gaia2_action_adherence.py --weights gaia2 my_weights --out outputs/adherence -- \
         model.evaluate.contexts=16 model.evaluate.probe_clips=256 model.evaluate.probe_steps=3000 \
         model.guidance.scale=4 'model.guidance.conditions=[action]'
+    python benchmarks/gaia2_action_adherence.py --weights gaia2 --scales 4 8 --out outputs/scales -- \
+        model.evaluate.noise_draws=2 'model.guidance.conditions=[action]'
 """
 
 from __future__ import annotations
@@ -29,49 +32,61 @@ from gaia_app.utils.run_dir import atomic_write_text
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
 
-def with_weights(cfg: DictConfig, folder: str) -> DictConfig:
-    """A copy of `cfg` with weights=`folder`."""
+def with_weights(cfg: DictConfig, folder: str, scale: float | None = None) -> DictConfig:
+    """A copy of `cfg` with weights=`folder` and, unless None, model.guidance.scale=`scale`."""
     copy = cfg.copy()
     copy.weights = folder
+    if scale is not None:
+        copy.model.guidance.scale = float(scale)
     return copy
 
 
-def adherence(folders: list[str], overrides: list[str]) -> dict[str, Any]:
-    """{"probe_fit": …, "tables": {folder: action table}} for each weights folder, one probe and one set of scenes."""
+def variant_name(folder: str, scale: float | None) -> str:
+    return folder if scale is None else f"{folder}, guidance ×{scale:g}"
+
+
+def adherence(folders: list[str], overrides: list[str], scales: list[float] | None = None) -> dict[str, Any]:
+    """{"probe_fit": …, "tables": {name: action table}} for each weights folder (× each guidance scale of `scales`),
+    one probe and one set of scenes."""
     GlobalHydra.instance().clear()  # a caller's Hydra (tests compose many configs) must not block this one
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("generate", ["model=gaia2", "data=synthetic_rig", "mode=evaluate", f"weights={folders[0]}",
                                    *overrides])
     gaia2_actions.check_action_agents(cfg)
     gaia2_actions.probe_stride(cfg)
-    pipelines = {folder: load_gaia2(with_weights(cfg, folder)) for folder in folders}  # a bad folder fails first
-    frames = cfg.model.steps * pipelines[folders[0]].temporal
+    if scales is not None and any(scale < 0 for scale in scales):
+        raise ValueError(f"--scales {scales}: guidance scales must be ≥ 0")
+    pipelines = {variant_name(folder, scale): load_gaia2(with_weights(cfg, folder, scale))  # a bad folder fails first
+                 for folder in folders for scale in (scales or [None])}
+    frames = cfg.model.steps * next(iter(pipelines.values())).temporal
     started = time.perf_counter()
     probe, fit = gaia2_actions.train_action_probe(cfg, frames)
     samples = rig_samples(cfg, cfg.context.seed, cfg.model.evaluate.contexts, frames)
     tables = {}
-    for folder, pipeline in pipelines.items():
+    for name, pipeline in pipelines.items():
         scenes = [(s, cut_steps(pipeline.encode(s.clip), cfg.model.steps)) for s in samples]
-        generator = torch.Generator().manual_seed(int(cfg.seed))  # the same noise for every folder
-        tables[folder] = gaia2_actions.action_table(cfg, pipeline, scenes, probe, generator)
-    return {"probe_fit": fit, "seconds": time.perf_counter() - started, "overrides": overrides, "tables": tables}
+        generator = torch.Generator().manual_seed(int(cfg.seed))  # the same noise for every folder and scale
+        tables[name] = gaia2_actions.action_table(cfg, pipeline, scenes, probe, generator)
+    return {"probe_fit": fit, "seconds": time.perf_counter() - started, "overrides": overrides, "scales": scales,
+            "tables": tables}
 
 
 def markdown(result: dict[str, Any]) -> str:
     """One action table per folder (the evaluation's layout), each headed by its folder."""
     lines = [f"Overrides: {' '.join(result['overrides']) or '(none)'}; {result['seconds']:.0f} s", ""]
-    for folder, table in result["tables"].items():
-        lines += [f"### weights={folder}", "", *gaia2_actions.markdown(table), ""]
+    for name, table in result["tables"].items():
+        lines += [f"### weights={name}", "", *gaia2_actions.markdown(table), ""]
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--weights", nargs="+", required=True, help="weights folders (gaia2 or paths)")
+    parser.add_argument("--scales", nargs="+", type=float, help="guidance scales, each replacing model.guidance.scale")
     parser.add_argument("--out", type=Path, help="folder for action_adherence.{json,md}")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of generate.yaml (after --)")
     args = parser.parse_args(argv)
-    result = adherence(args.weights, args.overrides)
+    result = adherence(args.weights, args.overrides, args.scales)
     table = markdown(result)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)

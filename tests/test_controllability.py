@@ -85,6 +85,31 @@ def test_a_strided_probe_reads_frames_stride_apart_against_the_mean_action_betwe
     assert row["speed_mae"]["mean"] == pytest.approx(0.0) and row["curvature_mae"]["mean"] == pytest.approx(0.0)
 
 
+def test_error_row_scores_each_context_by_the_mean_over_its_draws() -> None:
+    """draws futures per context: a context's contrast error is the mean of its draws' errors, and the intervals
+    stay over contexts (N of them), not over N·draws."""
+    commanded = torch.zeros(4, 5, 2)  # 2 commands (brake, accelerate) × 2 contexts, command-major
+    commanded[:2, :, 0], commanded[2:, :, 0] = 5.0, 9.0
+    commanded[2:, :, 1] = 0.01  # the curvature contrast needs two commands that differ too
+
+    class ReadsChannel(InverseDynamicsProbe):
+        def forward(self, pair: torch.Tensor) -> torch.Tensor:
+            return pair[:, 1, :2, 0, 0]
+
+    speeds = torch.tensor([[5.0, 7.0], [5.0, 5.0],    # brake: context 0 draws, context 1 draws
+                           [9.0, 9.0], [6.0, 8.0]])  # accelerate
+    video = torch.zeros(8, 5, 3, 2, 2)
+    video[:, :, 0] = speeds.flatten()[:, None, None, None]
+    row = error_row(ReadsChannel(), video, commanded, start=1, commands=2, draws=2)
+    # realised speed contrasts per draw: context 0: 9−5 = 4, 9−7 = 2 → errors 0, 2; context 1: 6−5 = 1, 8−5 = 3 → 3, 1
+    assert row["speed_contrast"]["mean"] == pytest.approx(1.5) and row["speed_contrast"]["n"] == 2
+    assert row["realised"]["speed_contrast"]["per_context"] == pytest.approx([3.0, 2.0]) and row["draws"] == 2
+    one_draw = error_row(ReadsChannel(), video[::2], commanded, start=1, commands=2)
+    assert one_draw["speed_contrast"]["mean"] == pytest.approx(1.5) and one_draw["draws"] == 1  # errors 0 and 3
+    with pytest.raises(ValueError, match="8 videos for 4 commanded futures × 3 draws"):
+        error_row(ReadsChannel(), video, commanded, start=1, commands=2, draws=3)
+
+
 class ConstantDynamics(InverseDynamicsProbe):
     def forward(self, pair: torch.Tensor) -> torch.Tensor:
         return torch.tensor([[10.0, 0.01]]).expand(pair.shape[0], 2)

@@ -80,10 +80,14 @@ def test_gaia2_probe_quality_scores_the_ceiling_against_the_reference() -> None:
     assert result["curvature_contrast"]["reference"] == pytest.approx(0.04, abs=0.01)
 
 
-def test_gaia2_action_adherence_scores_folders_side_by_side_on_one_probe(tmp_path) -> None:
-    """benchmarks/gaia2_action_adherence.py: a copy of the shipped folder gets the same table as the original (one
-    probe, the same scenes and noise), and the files carry one table per folder."""
+def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_probe(tmp_path) -> None:
+    """benchmarks/gaia2_action_adherence.py: every folder × guidance scale is scored on one probe with the same scenes
+    and noise: a copy of the shipped folder gets the same table as the original, a folder with other world-model
+    weights and another guidance scale get other futures (so no folder or scale is ignored), and the files carry one
+    table per variant."""
     import shutil
+
+    from safetensors.torch import load_file, save_file
 
     from gaia_app.utils.shipped import shipped_folder
 
@@ -91,13 +95,29 @@ def test_gaia2_action_adherence_scores_folders_side_by_side_on_one_probe(tmp_pat
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     copy = shutil.copytree(shipped_folder("gaia2"), tmp_path / "copy")
-    result = module.main(["--weights", "gaia2", str(copy), "--out", str(tmp_path / "out"), "model.evaluate.contexts=2",
-                          "model.evaluate.probe_clips=2", "model.evaluate.probe_steps=2", "model.sampler.steps=2"])
-    original, copied = result["tables"]["gaia2"], result["tables"][str(copy)]
-    assert original["probe_stride"] == 2 and original["scored_steps"] == 6
+    other = shutil.copytree(shipped_folder("gaia2"), tmp_path / "other")
+    weights = load_file(other / "latent_world_model.safetensors")
+    save_file({name: tensor * 0.9 for name, tensor in weights.items()}, other / "latent_world_model.safetensors")
+    result = module.main(["--weights", "gaia2", str(copy), str(other), "--scales", "0", "4",
+                          "--out", str(tmp_path / "out"), "model.evaluate.contexts=1", "model.evaluate.noise_draws=2",
+                          "model.evaluate.probe_clips=2", "model.evaluate.probe_steps=2", "model.sampler.steps=2",
+                          "model.guidance.conditions=[action]"])
+    tables = result["tables"]
+    assert len(tables) == 6
+    original, copied = tables["gaia2, guidance ×0"], tables[f"{copy}, guidance ×0"]
+    assert original["probe_stride"] == 2 and original["scored_steps"] == 6 and original["noise_draws"] == 2
+    assert original["rows"]["model"]["draws"] == 2 and original["rows"]["ceiling"]["draws"] == 1
     for name in ("ceiling", "model", "floor"):
         assert original["rows"][name]["curvature_contrast"] == copied["rows"][name]["curvature_contrast"]
+    def realised(table: dict) -> list[float]:
+        return table["rows"]["model"]["realised"]["speed_contrast"]["per_context"]
+    assert realised(tables[f"{other}, guidance ×0"]) != realised(original)
+    assert realised(tables["gaia2, guidance ×4"]) != realised(original)
+    assert tables[f"{other}, guidance ×0"]["rows"]["ceiling"] == original["rows"]["ceiling"]  # one probe, same scenes
     table = (tmp_path / "out" / "action_adherence.md").read_text()
-    assert table.count("| model, commanded actions |") == 2 and f"### weights={copy}" in table
+    assert table.count("| model, commanded actions |") == 6 and f"### weights={copy}, guidance ×4" in table
     with pytest.raises(ValueError, match="probe_stride=5"):
         module.main(["--weights", "gaia2", "--", "model.evaluate.probe_stride=5"])
+    with pytest.raises(ValueError, match="noise_draws=0"):
+        module.main(["--weights", "gaia2", "--", "model.evaluate.noise_draws=0", "model.evaluate.contexts=1",
+                     "model.evaluate.probe_clips=1", "model.evaluate.probe_steps=1", "model.sampler.steps=1"])

@@ -220,17 +220,24 @@ def command_discrimination(pipeline: Gaia1Pipeline, real: torch.Tensor, commande
 
 
 def error_row(probe, video: torch.Tensor, commanded: torch.Tensor, start: int, commands: int,
-              stride: int = 1) -> dict[str, Any]:
+              stride: int = 1, draws: int = 1) -> dict[str, Any]:
     """Of a command-major batch, with 95 % intervals over contexts: the contrast errors (speed: accelerate vs
     brake, curvature: left vs right, gaia_app.eval.controllability.contrast_errors), the MAE against every command,
-    and the MAE per command. The probe reads frame pairs `stride` apart (eval.controllability.strided_actions)."""
-    probed = probed_actions(probe, video, start, stride).unflatten(0, (commands, -1))  # (C, N, s, 2)
+    and the MAE per command. The probe reads frame pairs `stride` apart (eval.controllability.strided_actions).
+
+    video (C·N·draws, f, 3, H, W): command-major, then context, then `draws` futures of each context sampled with
+    other noise; commanded (C·N, f, 2). A context's scores are the means over its draws, so the intervals stay over
+    contexts (draws of one context are not independent) while the sampling noise in each context's score shrinks."""
+    if draws < 1 or len(video) != len(commanded) * draws:
+        raise ValueError(f"error_row: {len(video)} videos for {len(commanded)} commanded futures × {draws} draws")
+    commanded = commanded.repeat_interleave(draws, dim=0)
+    probed = probed_actions(probe, video, start, stride).unflatten(0, (commands, -1))  # (C, N·D, s, 2)
     wanted = strided_actions(commanded, stride)[:, start - 1 : -1].unflatten(0, (commands, -1))
-    errors = (probed - wanted).abs().mean(dim=2)  # (C, N, 2)
+    errors = by_context((probed - wanted).abs().mean(dim=2).transpose(0, 1), draws).transpose(0, 1)  # (C, N, 2)
     per_context = errors.mean(dim=0)
-    contrast = contrast_errors(probed, wanted)
+    contrast = by_context(contrast_errors(probed, wanted), draws)
     row = {name: mean_interval(contrast[:, k].tolist()).as_dict() for k, name in enumerate(CONTRASTS)}
-    realised, commanded_difference = realised_contrasts(probed, wanted)
+    realised, commanded_difference = (by_context(x, draws) for x in realised_contrasts(probed, wanted))
     spread = realised.std(dim=0) if len(realised) > 1 else torch.zeros(2)
     # per_context: kept so that runs with other sampling seeds can split the spread into within- and between-context
     row["realised"] = {name: mean_interval(realised[:, k].tolist()).as_dict() | {
@@ -239,7 +246,13 @@ def error_row(probe, video: torch.Tensor, commanded: torch.Tensor, start: int, c
         for k, name in enumerate(CONTRASTS)}
     row |= {name: mean_interval(per_context[:, k].tolist()).as_dict() for k, name in enumerate(("speed_mae", "curvature_mae"))}
     row["per_command"] = errors.mean(dim=1).tolist()
+    row["draws"] = draws
     return row
+
+
+def by_context(scores: torch.Tensor, draws: int) -> torch.Tensor:
+    """(N, ...) means over each context's `draws` consecutive rows of (N·draws, ...)."""
+    return scores.unflatten(0, (-1, draws)).mean(dim=1)
 
 
 def action_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: torch.Generator) -> dict[str, Any]:

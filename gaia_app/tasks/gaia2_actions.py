@@ -15,6 +15,8 @@ Legend: N scenes, C commands, f = model.steps · temporal frames (front camera),
     tokenized = the ceiling encoded and decoded by the tokenizer (a diagnostic);
     model     = the world model continuing the scene's t0 context frames under the commanded actions;
     floor     = the same continuation with the action condition dropped (same noise as the model's futures);
+                model and floor sample `model.evaluate.noise_draws` futures per scene (and command), each from its
+                own noise, and a scene scores their mean;
     both with the agent boxes dropped (`model.evaluate.action_agents=dropped`, the default) or the real continuation's
     (`real`: boxes that move with the scene's own ego motion, not the command's, so they contradict it);
     reference = the real continuation under the scene's own policy, scored against the command.
@@ -50,6 +52,7 @@ AGENT_CHOICES = ("dropped", "real")
 ROWS = {"ceiling": "ceiling (re-simulated with the commands)", "tokenized": "tokenized ceiling (diagnostic)",
         "model": "model, commanded actions", "floor": "floor (actions dropped)",
         "reference": "reference (real continuation)"}
+SAMPLED = ("model", "floor")  # the rows the world model samples, `model.evaluate.noise_draws` futures per scene
 
 
 def check_action_agents(cfg: DictConfig) -> None:
@@ -85,6 +88,14 @@ def probe_stride(cfg: DictConfig) -> int:
     return stride
 
 
+def noise_draws(cfg: DictConfig) -> int:
+    """`model.evaluate.noise_draws`: futures per scene and command, each from its own noise; ValueError unless ≥ 1."""
+    draws = cfg.model.evaluate.noise_draws
+    if not isinstance(draws, int) or draws < 1:
+        raise ValueError(f"model.evaluate.noise_draws={draws!r}: expected a whole number ≥ 1")
+    return draws
+
+
 def resimulated(cfg: DictConfig, index: int, actions: np.ndarray) -> Clip:
     """Scene `index` of the world `context.seed` (every camera of the rig) driven open-loop by per-frame `actions` (f, 2)."""
     world = rig_world(cfg, cfg.context.seed, index + 1, len(actions), scenario=Scenario(ego_actions=actions))
@@ -103,8 +114,9 @@ def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Sy
     commands = [tuple(cmd) for cmd in g.evaluate.commands]
     commanded = commanded_actions(contexts, first, frames - first, rate, commands)  # (C·N, f, 2) command-major
     pairs = contrast_pairs(commanded[:, first:-1].unflatten(0, (len(commands), -1)))  # fails before any rollout
-    n = len(scenes)
-    noise = [int(torch.randint(2**31, (), generator=generator)) for _ in scenes]  # one per scene, shared by commands
+    n, draws = len(scenes), noise_draws(cfg)
+    # `draws` noise seeds per scene, shared by its commands and its floor
+    noise = [[int(torch.randint(2**31, (), generator=generator)) for _ in range(draws)] for _ in scenes]
     videos: dict[str, list[torch.Tensor]] = {name: [] for name in ROWS}
     for k in tqdm(range(len(commanded)), desc="action adherence"):
         i = k % n
@@ -117,17 +129,19 @@ def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Sy
         context, _ = pipeline.window(target, 0, g.context_steps)
         _, cond = pipeline.window(target, 0, g.steps)
         cond = cond.without("agents") if g.evaluate.action_agents == "dropped" else cond
-        videos["model"].append(continuation(pipeline, context, cond, g.steps - g.context_steps, noise[i]))
-        if k < n:  # the floor ignores the command: one continuation per scene, scored against every command
-            videos["floor"].append(continuation(pipeline, context, cond.without("action"), g.steps - g.context_steps, noise[i]))
+        for seed in noise[i]:
+            videos["model"].append(continuation(pipeline, context, cond, g.steps - g.context_steps, seed))
+            if k < n:  # the floor ignores the command: one continuation per scene and draw, scored against every command
+                videos["floor"].append(continuation(pipeline, context, cond.without("action"), g.steps - g.context_steps, seed))
     videos["floor"] = videos["floor"] * len(commands)
     videos["reference"] = list(contexts.frames) * len(commands)
     # scored: pairs (i − stride, i) of generated frames only, i = first + stride … f − 1
-    rows = {name: error_row(probe, torch.stack(video), commanded, first + stride, len(commands), stride)
+    rows = {name: error_row(probe, torch.stack(video), commanded, first + stride, len(commands), stride,
+                            draws if name in SAMPLED else 1)
             for name, video in videos.items()}
     contrasted = {metric: ["/".join(commands[high]), "/".join(commands[low])] for metric, (high, low) in zip(CONTRASTS, pairs)}
     return {"scenes": n, "commands": [list(cmd) for cmd in commands], "agents": g.evaluate.action_agents,
-            "context_frames": first, "probe_stride": stride,
+            "context_frames": first, "probe_stride": stride, "noise_draws": draws,
             "scored_steps": frames - first - stride, "rows": rows, "contrasts": contrasted, "checks": action_checks(rows)}
 
 
@@ -142,7 +156,8 @@ def markdown(actions: dict[str, Any]) -> list[str]:
     speed, curvature = (" vs ".join(actions["contrasts"][m]) for m in CONTRASTS)
     return [f"Action adherence (front camera, {actions['scenes']} held-out scenes × {len(actions['commands'])} commands "
              f"({', '.join('/'.join(c) for c in actions['commands'])}), {actions['context_frames']} context frames, "
-             f"{actions['scored_steps']} scored frame pairs {actions.get('probe_stride', 1)} frame(s) apart each, agent boxes {actions['agents']}; ± 95 % interval over scenes. Contrast error: |probed "
+             f"{actions['scored_steps']} scored frame pairs {actions.get('probe_stride', 1)} frame(s) apart each, agent boxes {actions['agents']}, "
+             f"{actions.get('noise_draws', 1)} sampled future(s) per scene and command (a scene's score: their mean); ± 95 % interval over scenes. Contrast error: |probed "
              f"difference − commanded difference| of the horizon-mean speed ({speed}) and curvature ({curvature}) of "
              "two futures of one scene; MAE: mean |probed − commanded| (diagnostic)", "",
              *action_rows_markdown(actions, ROWS)]
