@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from gaia_app.data.synthetic import SyntheticClipDataset
-from gaia_app.eval.agent_iou import agent_clips, agent_iou, train_agent_probe
+from gaia_app.eval.agent_iou import agent_clips, agent_iou, agent_overlap, train_agent_probe
 from gaia_app.models.probes import AgentSegmentationProbe
 
 
@@ -29,6 +29,23 @@ def test_iou_is_pooled_over_pixels() -> None:
     assert math.isnan(agent_iou(Oracle(), -torch.ones(1, 1, 3, 8, 8), torch.zeros(1, 1, 8, 8, dtype=torch.bool)))
     with pytest.raises(ValueError, match="do not match"):
         agent_iou(Oracle(), frames, masks[:, :1])
+
+
+def test_overlap_within_a_region_counts_only_its_pixels() -> None:
+    """region= restricts both masks to it: the IoU inside the boxes, and with all-true masks the probe's agent share
+    of the area outside them (the evaluation's false alarms where spatially selective CFG does not guide)."""
+    frames = -torch.ones(1, 1, 3, 8, 8)
+    frames[0, 0, 0, :4, :4] = 1  # predicted: the top-left 4 × 4
+    frames[0, 0, 0, 6:, 6:] = 1  # and a 2 × 2 false alarm bottom right
+    masks = torch.zeros(1, 1, 8, 8, dtype=torch.bool)
+    masks[0, 0, :4, :2] = True
+    box = torch.zeros(1, 1, 8, 8, dtype=torch.bool)
+    box[0, 0, :4, :4] = True
+    assert agent_overlap(Oracle(), frames, masks, region=box) == (8, 16)
+    assert agent_overlap(Oracle(), frames, torch.ones_like(masks), region=~box) == (4, 48)
+    assert agent_overlap(Oracle(), frames, masks) == (8, 20)
+    with pytest.raises(ValueError, match=r"region \(1, 1, 4, 4\) does not match"):
+        agent_overlap(Oracle(), frames, masks, region=box[..., :4, :4])
 
 
 def test_probe_learns_agent_masks_of_the_synthetic_world() -> None:

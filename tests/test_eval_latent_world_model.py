@@ -121,3 +121,23 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
     with pytest.raises(ValueError, match="noise_draws=0"):
         module.main(["--weights", "gaia2", "--", "model.evaluate.noise_draws=0", "model.evaluate.contexts=1",
                      "model.evaluate.probe_clips=1", "model.evaluate.probe_steps=1", "model.sampler.steps=1"])
+
+
+def test_gaia2_agent_guidance_splits_iou_inside_and_outside_the_boxes(tmp_path) -> None:
+    """benchmarks/gaia2_agent_guidance.py: the evaluation's agent table alone, with the IoU inside the conditioning
+    boxes and the agent share outside them for every row, the guided rows paired to plain CFG; refuses scale 0."""
+    spec = importlib.util.spec_from_file_location("gaia2_agent_guidance", ROOT / "benchmarks" / "gaia2_agent_guidance.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    tiny = ["model.evaluate.contexts=2", "model.evaluate.probe_clips=2", "model.evaluate.probe_steps=2",
+            "model.sampler.steps=2"]
+    result = module.main(["--out", str(tmp_path), *tiny])
+    rows = result["agents"]["rows"]
+    assert len(rows) == 7 and result["cameras"] == ["front", "front_left", "front_right"]
+    for name, row in rows.items():
+        assert 0 <= row["iou_inside_boxes"] <= 1 and 0 <= row["agent_share_outside_boxes"] <= 1
+        assert ("iou_inside_boxes_minus_plain" in row) == name.startswith("model, selective CFG")
+    table = (tmp_path / "agent_guidance.md").read_text()
+    assert "agent share outside the boxes" in table and table.count("| model, selective CFG ×3") == 2
+    with pytest.raises(ValueError, match="cfg_scale=0"):
+        module.main([*tiny, "model.evaluate.cfg_scale=0"])

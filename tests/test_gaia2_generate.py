@@ -218,6 +218,8 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
         assert interval["n"] == 2 and interval["mean"] == row["iou_agent_masks"]
         assert ("iou_agent_masks_minus_plain" in row) == (name in {"model, selective CFG ×3",
                                                                    "model, selective CFG ×3, full second pass"})
+        assert 0 <= row["iou_inside_boxes"] <= 1 and 0 <= row["agent_share_outside_boxes"] <= 1
+        assert ("agent_share_outside_boxes_minus_plain" in row) == ("iou_agent_masks_minus_plain" in row)
     paired = agents["model, selective CFG ×3"]["iou_agent_masks_minus_plain"]["mean"]
     assert paired == pytest.approx(agents["model, selective CFG ×3"]["iou_agent_masks"]
                                    - agents["model, plain CFG ×3"]["iou_agent_masks"])

@@ -86,23 +86,40 @@ def box_masks(cond: Any, frames: int, temporal: int) -> torch.Tensor:
     return per_step.repeat_interleave(temporal, dim=0)[:frames].transpose(0, 1)
 
 
-def train_probes_for(cfg: DictConfig, frames: int) -> tuple[Any, Any, dict[str, Any]]:
-    """The agent segmentation probe (every camera, the probe world) and the inverse-dynamics probe (front camera,
-    gaia2_actions.train_action_probe)."""
+def train_segmentation_probe(cfg: DictConfig, frames: int) -> tuple[Any, dict[str, float]]:
+    """The agent segmentation probe (every camera of `probe_clips` clips of the probe world) and its fit."""
     e = cfg.model.evaluate
     samples = rig_samples(cfg, e.probe_seed, e.probe_clips, frames)
     images = torch.cat([to_float(torch.from_numpy(s.clip.frames)) for s in samples])  # (N·v, T, 3, H, W)
     masks = torch.cat([agent_masks(s, frames) for s in samples])
-    segmentation, agent_fit = train_agent_probe(images, masks, steps=e.probe_steps, seed=cfg.seed)
+    return train_agent_probe(images, masks, steps=e.probe_steps, seed=cfg.seed)
+
+
+def train_probes_for(cfg: DictConfig, frames: int) -> tuple[Any, Any, dict[str, Any]]:
+    """The agent segmentation probe (train_segmentation_probe) and the inverse-dynamics probe (front camera,
+    gaia2_actions.train_action_probe)."""
+    segmentation, agent_fit = train_segmentation_probe(cfg, frames)
     dynamics, action_fit = gaia2_actions.train_action_probe(cfg, frames)
     return segmentation, dynamics, {"agent_probe": agent_fit, "action_probe": action_fit}
 
 
-def scene_overlaps(probe: Any, videos: list[torch.Tensor], masks: list[torch.Tensor]) -> tuple[list[int], list[int]]:
+def scene_overlaps(probe: Any, videos: list[torch.Tensor], masks: list[torch.Tensor],
+                   regions: list[torch.Tensor] | None = None) -> tuple[list[int], list[int]]:
     """Per scene, the (intersection, union) pixel counts of the probe's masks on its video (v, T, 3, H, W) with its
-    masks (v, T, H, W)."""
-    counts = [agent_overlap(probe, video, mask) for video, mask in zip(videos, masks)]
+    masks (v, T, H, W), within its region (v, T, H, W) where `regions` is given."""
+    counts = [agent_overlap(probe, video, mask, region=region)
+              for video, mask, region in zip(videos, masks, regions or [None] * len(videos))]
     return [i for i, _ in counts], [u for _, u in counts]
+
+
+def region_metrics(probe: Any, videos: list[torch.Tensor], truth: list[torch.Tensor],
+                   boxes: list[torch.Tensor]) -> dict[str, tuple[list[int], list[int]]]:
+    """Where guidance can act: the IoU with the agent masks inside the conditioning boxes, and the share of the area
+    outside every box that the probe calls agent (false alarms there: spatially selective CFG leaves those tokens
+    unguided, plain CFG guides them away from the agents-dropped prediction)."""
+    outside = [~box for box in boxes]
+    return {"iou_inside_boxes": scene_overlaps(probe, videos, truth, boxes),
+            "agent_share_outside_boxes": scene_overlaps(probe, videos, [torch.ones_like(box) for box in boxes], outside)}
 
 
 def iou_rows(probe: Any, rows: dict[str, list[torch.Tensor]], truth: list[torch.Tensor], boxes: list[torch.Tensor],
@@ -110,7 +127,8 @@ def iou_rows(probe: Any, rows: dict[str, list[torch.Tensor]], truth: list[torch.
     """Per row: the pooled IoU with the true agent masks and with the box masks, each with its interval over scenes,
     and for the guided rows other than `reference` their paired difference to it."""
     overlaps = {name: {"iou_agent_masks": scene_overlaps(probe, videos, truth),
-                       "iou_conditioning_boxes": scene_overlaps(probe, videos, boxes)} for name, videos in rows.items()}
+                       "iou_conditioning_boxes": scene_overlaps(probe, videos, boxes),
+                       **region_metrics(probe, videos, truth, boxes)} for name, videos in rows.items()}
     table: dict[str, dict[str, Any]] = {}
     for name, counts in overlaps.items():
         table[name] = {}
@@ -241,15 +259,7 @@ def markdown(results: dict[str, Any]) -> str:
     lines += [f"| {row} | " + " | ".join(f"{values[n]:.3f}" for n in names) + " |"
               for row, values in fidelity["rows"].items()]
     lines.append("")
-    agents = results["agents"]
-    title = (f"Agent control ({agents['scenes']} held-out scenes × {len(results['cameras'])} cameras × "
-             f"{agents['frames']} frames, generated from scratch; pooled IoU [95 % interval, scenes resampled]; guided "
-             "rows: paired difference to plain CFG on the same scenes and noise)")
-    lines += [title, "",
-             "| frames | IoU with agent masks ↑ | IoU with conditioning boxes ↑ | agent masks − plain CFG |",
-             "|---|---:|---:|---:|"]
-    lines += [f"| {name} | {iou_cell(row, 'iou_agent_masks')} | {iou_cell(row, 'iou_conditioning_boxes')} | "
-              f"{difference_cell(row.get('iou_agent_masks_minus_plain'))} |" for name, row in agents["rows"].items()]
+    lines += agent_markdown(results["agents"], results["cameras"])
     lines += ["", *gaia2_actions.markdown(results["actions"])]
     views = results["cross_view"]
     lines += ["", f"Cross-view consistency ({views['scenes']} held-out scenes × {views['frames']} frames, camera pairs "
@@ -260,9 +270,31 @@ def markdown(results: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def agent_markdown(agents: dict[str, Any], cameras: list[str]) -> list[str]:
+    """The agent-control table's lines."""
+    title = (f"Agent control ({agents['scenes']} held-out scenes × {len(cameras)} cameras × "
+             f"{agents['frames']} frames, generated from scratch; pooled IoU [95 % interval, scenes resampled]; guided "
+             "rows: paired difference to plain CFG on the same scenes and noise)")
+    lines = [title, "",
+             "| frames | IoU with agent masks ↑ | IoU with conditioning boxes ↑ | agent masks − plain CFG | "
+             "IoU inside the boxes ↑ (− plain) | agent share outside the boxes ↓ (− plain) |",
+             "|---|---:|---:|---:|---:|---:|"]
+    return lines + [f"| {name} | {iou_cell(row, 'iou_agent_masks')} | {iou_cell(row, 'iou_conditioning_boxes')} | "
+                    f"{difference_cell(row.get('iou_agent_masks_minus_plain'))} | {region_cell(row, 'iou_inside_boxes')} | "
+                    f"{region_cell(row, 'agent_share_outside_boxes')} |" for name, row in agents["rows"].items()]
+
+
 def iou_cell(row: dict[str, Any], metric: str) -> str:
     interval = row.get(f"{metric}_interval")
     return f"{row[metric]:.3f}" + (f" [{interval['low']:.3f}, {interval['high']:.3f}]" if interval else "")
+
+
+def region_cell(row: dict[str, Any], metric: str) -> str:
+    """'value' and, for the guided rows, '(difference to plain CFG [interval])'; blank for tables without it."""
+    if metric not in row:
+        return ""
+    difference = row.get(f"{metric}_minus_plain")
+    return f"{row[metric]:.3f}" + (f" ({difference_cell(difference)})" if difference else "")
 
 
 def difference_cell(difference: dict[str, float] | None) -> str:
