@@ -309,6 +309,12 @@ def test_export_keeps_the_tokenizer_of_a_weights_folder(checkpoints, tmp_path: P
                                              f"tokenizer_ckpt={checkpoints['tokenizer']}",
                                              f"world_model_ckpt={checkpoints['world_model']}",
                                              f"out_dir={tmp_path / 'x'}"], tmp_path / "both"))
+    with pytest.raises(ValueError, match=r"needs tokenizer_ckpt=<checkpoint of a GAIA-2 video tokenizer> \(or weights="):
+        generate(compose_config("generate", ["model=gaia2", "mode=export", *RIG, f"out_dir={tmp_path / 'x'}",
+                                             f"world_model_ckpt={checkpoints['world_model']}"], tmp_path / "none"))
+    with pytest.raises(ValueError, match="model=gaia2 mode=export needs world_model_ckpt="):
+        generate(compose_config("generate", ["model=gaia2", "mode=export", *RIG, f"weights={first}",
+                                             f"out_dir={tmp_path / 'x'}"], tmp_path / "no_world_model"))
 
 
 def test_inference_builds_nets_without_lightning_modules(checkpoints, tmp_path: Path) -> None:

@@ -35,15 +35,22 @@ from gaia_app.utils.checkpoint_io import read_checkpoint
 from gaia_app.utils.shipped import export_component, read_config, shipped_folder, weight_files
 
 
-def export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """Export `cfg.tokenizer_ckpt`, `cfg.world_model_ckpt` and `cfg.controllability.probes` into `cfg.out_dir`."""
+def export_sources(cfg: DictConfig, mode: str, tokenizer: str, tokenizer_hint: str, world_model_hint: str) -> Path | None:
+    """The weights folder `cfg.weights` that gives the tokenizer (None without one), after checking that exactly
+    one of it and `cfg.tokenizer_ckpt` is set, and that `cfg.world_model_ckpt` is; errors name `mode` and the key."""
     source = shipped_folder(cfg.weights) if cfg.get("weights") else None
     if source is not None and cfg.get("tokenizer_ckpt"):
-        raise ValueError(f"mode=export: weights={cfg.weights} gives the tokenizer; drop tokenizer_ckpt")
-    for key in ("tokenizer_ckpt", "world_model_ckpt"):
-        if not cfg.get(key) and not (key == "tokenizer_ckpt" and source is not None):
-            raise ValueError(f"mode=export needs {key}=<checkpoint>"
-                             + (" (or weights=<folder> for the tokenizer)" if key == "tokenizer_ckpt" else ""))
+        raise ValueError(f"{mode}: weights={cfg.weights} gives the {tokenizer}; drop tokenizer_ckpt")
+    if not cfg.get("tokenizer_ckpt") and source is None:
+        raise ValueError(f"{mode} needs tokenizer_ckpt={tokenizer_hint} (or weights=<folder> for the {tokenizer})")
+    if not cfg.get("world_model_ckpt"):
+        raise ValueError(f"{mode} needs world_model_ckpt={world_model_hint}")
+    return source
+
+
+def export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """Export `cfg.tokenizer_ckpt`, `cfg.world_model_ckpt` and `cfg.controllability.probes` into `cfg.out_dir`."""
+    source = export_sources(cfg, "mode=export", "tokenizer", "<checkpoint>", "<checkpoint>")
     out = Path(cfg.out_dir)
     results: dict[str, Any] = {"out_dir": str(out)}
     if source is None:
@@ -98,14 +105,8 @@ def export_gaia2(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """A GAIA-2 weights folder in `cfg.out_dir` from `cfg.tokenizer_ckpt` (or the video tokenizer of the weights
     folder `cfg.weights`, copied: a world model fine-tuned from shipped weights keeps their tokenizer) and
     `cfg.world_model_ckpt`."""
-    source = shipped_folder(cfg.weights) if cfg.get("weights") else None
-    if source is not None and cfg.get("tokenizer_ckpt"):
-        raise ValueError(f"model=gaia2 mode=export: weights={cfg.weights} gives the video tokenizer; drop tokenizer_ckpt")
-    for key in ("tokenizer_ckpt", "world_model_ckpt"):
-        if not cfg.get(key) and not (key == "tokenizer_ckpt" and source is not None):
-            raise ValueError(f"model=gaia2 mode=export needs {key}=<checkpoint of a GAIA-2 "
-                             f"{'video tokenizer' if key == 'tokenizer_ckpt' else 'latent world model'}>"
-                             + (" (or weights=<folder>)" if key == "tokenizer_ckpt" else ""))
+    source = export_sources(cfg, "model=gaia2 mode=export", "video tokenizer",
+                            "<checkpoint of a GAIA-2 video tokenizer>", "<checkpoint of a GAIA-2 latent world model>")
     out = Path(cfg.out_dir)
     world_model = checked_checkpoint(cfg.world_model_ckpt, "world_model_ckpt", "latent_world_model")
     if source is None:
