@@ -24,7 +24,9 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig
 
+from gaia_app.eval.intervals import mean_interval
 from gaia_app.tasks import gaia2_actions
+from gaia_app.tasks.controllability import CONTRASTS
 from gaia_app.tasks.gaia2_evaluate import rig_samples
 from gaia_app.tasks.gaia2_generate import cut_steps, load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
@@ -74,9 +76,24 @@ def adherence(folders: list[str], overrides: list[str], scales: list[float] | No
 def markdown(result: dict[str, Any]) -> str:
     """One action table per folder (the evaluation's layout), each headed by its folder."""
     lines = [f"Overrides: {' '.join(result['overrides']) or '(none)'}; {result['seconds']:.0f} s", ""]
+    first = next(iter(result["tables"]))
     for name, table in result["tables"].items():
         lines += [f"### weights={name}", "", *gaia2_actions.markdown(table), ""]
+        if name != first:
+            lines += [paired_line(result["tables"][first], table, first), ""]
     return "\n".join(lines)
+
+
+def paired_line(reference: dict[str, Any], table: dict[str, Any], name: str) -> str:
+    """The model row's contrast errors minus those of `reference` (the first table), paired by scene, ± 95 %."""
+    cells = []
+    for metric in CONTRASTS:
+        ours, theirs = (t["rows"]["model"][metric]["per_context"] for t in (table, reference))
+        difference = mean_interval([a - b for a, b in zip(ours, theirs)])
+        digits = 4 if "curvature" in metric else 3
+        cells.append(f"{metric.replace('_', ' ')} {difference.mean:+.{digits}f} [{difference.low:+.{digits}f}, "
+                     f"{difference.high:+.{digits}f}]")
+    return f"Model row minus weights={name}'s, paired by scene (same noise): " + "; ".join(cells)
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:

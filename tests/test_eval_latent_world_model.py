@@ -116,6 +116,7 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
     assert tables[f"{other}, guidance ×0"]["rows"]["ceiling"] == original["rows"]["ceiling"]  # one probe, same scenes
     table = (tmp_path / "out" / "action_adherence.md").read_text()
     assert table.count("| model, commanded actions |") == 6 and f"### weights={copy}, guidance ×4" in table
+    assert table.count("paired by scene") == 5 and "speed contrast +0.000 [" in table  # the copy's ×0 table: no change
     with pytest.raises(ValueError, match="probe_stride=5"):
         module.main(["--weights", "gaia2", "--", "model.evaluate.probe_stride=5"])
     with pytest.raises(ValueError, match="noise_draws=0"):

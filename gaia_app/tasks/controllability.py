@@ -236,7 +236,9 @@ def error_row(probe, video: torch.Tensor, commanded: torch.Tensor, start: int, c
     errors = by_context((probed - wanted).abs().mean(dim=2).transpose(0, 1), draws).transpose(0, 1)  # (C, N, 2)
     per_context = errors.mean(dim=0)
     contrast = by_context(contrast_errors(probed, wanted), draws)
-    row = {name: mean_interval(contrast[:, k].tolist()).as_dict() for k, name in enumerate(CONTRASTS)}
+    # per_context: for differences paired by context between runs on the same contexts (other weights or guidance)
+    row = {name: mean_interval(contrast[:, k].tolist()).as_dict() | {"per_context": contrast[:, k].tolist()}
+           for k, name in enumerate(CONTRASTS)}
     realised, commanded_difference = (by_context(x, draws) for x in realised_contrasts(probed, wanted))
     spread = realised.std(dim=0) if len(realised) > 1 else torch.zeros(2)
     # per_context: kept so that runs with other sampling seeds can split the spread into within- and between-context
