@@ -7,8 +7,11 @@ of its values in turn (0: unguided). Everything after `--` is a Hydra override o
     python benchmarks/gaia2_action_adherence.py --weights gaia2 my_weights --out outputs/adherence -- \
         model.evaluate.contexts=16 model.evaluate.probe_clips=256 model.evaluate.probe_steps=3000 \
         model.guidance.scale=4 'model.guidance.conditions=[action]'
-    python benchmarks/gaia2_action_adherence.py --weights gaia2 --scales 4 8 --out outputs/scales -- \
-        model.evaluate.noise_draws=2 'model.guidance.conditions=[action]'
+    python benchmarks/gaia2_action_adherence.py --weights gaia2 --scales 4 8 --fidelity --out outputs/scales -- \
+        model.evaluate.noise_draws=2 'model.guidance.conditions=[action]' 'evaluate.metrics=[psnr,ssim,fvmd]'
+
+`--fidelity` adds the evaluation's fidelity table for each variant (its rollouts under the scenes' own actions
+against the real continuations: what a guidance scale costs in PSNR, SSIM and motion statistics, FVMD).
 """
 
 from __future__ import annotations
@@ -25,9 +28,11 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig
 
 from gaia_app.eval.intervals import mean_interval
+from gaia_app.eval.report import ARROWS
 from gaia_app.tasks import gaia2_actions
 from gaia_app.tasks.controllability import CONTRASTS
-from gaia_app.tasks.gaia2_evaluate import rig_samples
+from gaia_app.tasks.evaluate import check_metrics
+from gaia_app.tasks.gaia2_evaluate import fidelity_table, rig_samples
 from gaia_app.tasks.gaia2_generate import cut_steps, load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
 
@@ -47,15 +52,22 @@ def variant_name(folder: str, scale: float | None) -> str:
     return folder if scale is None else f"{folder}, guidance ×{scale:g}"
 
 
-def adherence(folders: list[str], overrides: list[str], scales: list[float] | None = None) -> dict[str, Any]:
+def adherence(folders: list[str], overrides: list[str], scales: list[float] | None = None,
+              fidelity: bool = False) -> dict[str, Any]:
     """{"probe_fit": …, "tables": {name: action table}} for each weights folder (× each guidance scale of `scales`),
-    one probe and one set of scenes."""
+    one probe and one set of scenes; with `fidelity`, also {"fidelity": {name: the evaluation's fidelity table}}
+    (what the guidance costs in PSNR / SSIM / FVMD; `evaluate.metrics` without agent_iou)."""
     GlobalHydra.instance().clear()  # a caller's Hydra (tests compose many configs) must not block this one
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("generate", ["model=gaia2", "data=synthetic_rig", "mode=evaluate", f"weights={folders[0]}",
                                    *overrides])
     gaia2_actions.check_action_agents(cfg)
     gaia2_actions.probe_stride(cfg)
+    if fidelity:
+        check_metrics(cfg)
+        if "agent_iou" in cfg.evaluate.metrics:
+            raise ValueError("--fidelity scores evaluate.metrics without a segmentation probe: drop agent_iou, e.g. "
+                             "'evaluate.metrics=[psnr,ssim,fvmd]'")
     if scales is not None and any(scale < 0 for scale in scales):
         raise ValueError(f"--scales {scales}: guidance scales must be ≥ 0")
     pipelines = {variant_name(folder, scale): load_gaia2(with_weights(cfg, folder, scale))  # a bad folder fails first
@@ -64,24 +76,44 @@ def adherence(folders: list[str], overrides: list[str], scales: list[float] | No
     started = time.perf_counter()
     probe, fit = gaia2_actions.train_action_probe(cfg, frames)
     samples = rig_samples(cfg, cfg.context.seed, cfg.model.evaluate.contexts, frames)
-    tables = {}
+    tables, fidelities = {}, {}
     for name, pipeline in pipelines.items():
         scenes = [(s, cut_steps(pipeline.encode(s.clip), cfg.model.steps)) for s in samples]
         generator = torch.Generator().manual_seed(int(cfg.seed))  # the same noise for every folder and scale
         tables[name] = gaia2_actions.action_table(cfg, pipeline, scenes, probe, generator)
+        if fidelity:
+            fidelities[name] = fidelity_table(cfg, pipeline, scenes, None, torch.Generator().manual_seed(int(cfg.seed)))
     return {"probe_fit": fit, "seconds": time.perf_counter() - started, "overrides": overrides, "scales": scales,
-            "tables": tables}
+            "tables": tables, **({"fidelity": fidelities} if fidelity else {})}
 
 
 def markdown(result: dict[str, Any]) -> str:
     """One action table per folder (the evaluation's layout), each headed by its folder."""
     lines = [f"Overrides: {' '.join(result['overrides']) or '(none)'}; {result['seconds']:.0f} s", ""]
+    lines += fidelity_lines(result.get("fidelity"))
     first = next(iter(result["tables"]))
     for name, table in result["tables"].items():
         lines += [f"### weights={name}", "", *gaia2_actions.markdown(table), ""]
         if name != first:
             lines += [paired_line(result["tables"][first], table, first), ""]
     return "\n".join(lines)
+
+
+def fidelity_lines(fidelity: dict[str, Any] | None) -> list[str]:
+    """One table: each variant's rollouts (scenes' own actions, every camera) against the real continuations, next to
+    the tokenized real clip and the held frame."""
+    if not fidelity:
+        return []
+    some = next(iter(fidelity.values()))
+    names = list(some["rows"]["model (rollouts)"])
+    lines = [f"Fidelity ({some['clips']} clips (scene × camera), {some['context_frames']} context + "
+             f"{some['generated_frames']} generated frames)", "",
+             "| rollouts vs real continuations | " + " | ".join(f"{n} {ARROWS[n]}" for n in names) + " |",
+             "|---" + "|---:" * len(names) + "|"]
+    rows = {name: table["rows"]["model (rollouts)"] for name, table in fidelity.items()}
+    rows |= {row: values for row, values in some["rows"].items() if row != "model (rollouts)"}
+    return lines + [f"| {row} | " + " | ".join(f"{values[n]:.3f}" for n in names) + " |"
+                    for row, values in rows.items()] + [""]
 
 
 def paired_line(reference: dict[str, Any], table: dict[str, Any], name: str) -> str:
@@ -100,10 +132,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--weights", nargs="+", required=True, help="weights folders (gaia2 or paths)")
     parser.add_argument("--scales", nargs="+", type=float, help="guidance scales, each replacing model.guidance.scale")
+    parser.add_argument("--fidelity", action="store_true",
+                        help="also the evaluation's fidelity table per variant (PSNR / SSIM / FVMD of its rollouts)")
     parser.add_argument("--out", type=Path, help="folder for action_adherence.{json,md}")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of generate.yaml (after --)")
     args = parser.parse_args(argv)
-    result = adherence(args.weights, args.overrides, args.scales)
+    result = adherence(args.weights, args.overrides, args.scales, args.fidelity)
     table = markdown(result)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)

@@ -98,8 +98,8 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
     other = shutil.copytree(shipped_folder("gaia2"), tmp_path / "other")
     weights = load_file(other / "latent_world_model.safetensors")
     save_file({name: tensor * 0.9 for name, tensor in weights.items()}, other / "latent_world_model.safetensors")
-    result = module.main(["--weights", "gaia2", str(copy), str(other), "--scales", "0", "4",
-                          "--out", str(tmp_path / "out"), "model.evaluate.contexts=1", "model.evaluate.noise_draws=2",
+    result = module.main(["--weights", "gaia2", str(copy), str(other), "--scales", "0", "4", "--fidelity",
+                          "--out", str(tmp_path / "out"), "evaluate.metrics=[psnr,fvmd]", "model.evaluate.contexts=1", "model.evaluate.noise_draws=2",
                           "model.evaluate.probe_clips=2", "model.evaluate.probe_steps=2", "model.sampler.steps=2",
                           "model.guidance.conditions=[action]"])
     tables = result["tables"]
@@ -116,9 +116,15 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
     assert tables[f"{other}, guidance ×0"]["rows"]["ceiling"] == original["rows"]["ceiling"]  # one probe, same scenes
     table = (tmp_path / "out" / "action_adherence.md").read_text()
     assert table.count("| model, commanded actions |") == 6 and f"### weights={copy}, guidance ×4" in table
+    fidelity = result["fidelity"]
+    assert fidelity[f"{copy}, guidance ×0"] == fidelity["gaia2, guidance ×0"]  # the same scenes and noise
+    assert fidelity["gaia2, guidance ×4"]["rows"]["model (rollouts)"] != fidelity["gaia2, guidance ×0"]["rows"]["model (rollouts)"]
+    assert table.count("| gaia2, guidance ×") == 2 and "| held frame (floor) |" in table and "fvmd ↓" in table
     assert table.count("paired by scene") == 5 and "speed contrast +0.000 [" in table  # the copy's ×0 table: no change
     with pytest.raises(ValueError, match="probe_stride=5"):
         module.main(["--weights", "gaia2", "--", "model.evaluate.probe_stride=5"])
+    with pytest.raises(ValueError, match="drop agent_iou"):
+        module.main(["--weights", "gaia2", "--fidelity"])
     with pytest.raises(ValueError, match="noise_draws=0"):
         module.main(["--weights", "gaia2", "--", "model.evaluate.noise_draws=0", "model.evaluate.contexts=1",
                      "model.evaluate.probe_clips=1", "model.evaluate.probe_steps=1", "model.sampler.steps=1"])
