@@ -7,10 +7,10 @@ of its values in turn (0: unguided). Everything after `--` is a Hydra override o
     python benchmarks/gaia2_action_adherence.py --weights gaia2 my_weights --out outputs/adherence -- \
         model.evaluate.contexts=16 model.evaluate.probe_clips=256 model.evaluate.probe_steps=3000 \
         model.guidance.scale=4 'model.guidance.conditions=[action]'
-    python benchmarks/gaia2_action_adherence.py --weights gaia2 --scales 4 8 --fidelity --out outputs/scales -- \
+    python benchmarks/gaia2_action_adherence.py --weights gaia2 --scales 4 8 --tables actions fidelity --out outputs/scales -- \
         model.evaluate.noise_draws=2 'model.guidance.conditions=[action]' 'evaluate.metrics=[psnr,ssim,fvmd]'
 
-`--fidelity` adds the evaluation's fidelity table for each variant (its rollouts under the scenes' own actions
+`--tables fidelity` gives (or `--tables actions fidelity` adds) the evaluation's fidelity table for each variant (its rollouts under the scenes' own actions
 against the real continuations: what a guidance scale costs in PSNR, SSIM and motion statistics, FVMD).
 """
 
@@ -52,18 +52,24 @@ def variant_name(folder: str, scale: float | None) -> str:
     return folder if scale is None else f"{folder}, guidance ×{scale:g}"
 
 
+TABLES = ("actions", "fidelity")
+
+
 def adherence(folders: list[str], overrides: list[str], scales: list[float] | None = None,
-              fidelity: bool = False) -> dict[str, Any]:
-    """{"probe_fit": …, "tables": {name: action table}} for each weights folder (× each guidance scale of `scales`),
-    one probe and one set of scenes; with `fidelity`, also {"fidelity": {name: the evaluation's fidelity table}}
-    (what the guidance costs in PSNR / SSIM / FVMD; `evaluate.metrics` without agent_iou)."""
+              tables: tuple[str, ...] = ("actions",)) -> dict[str, Any]:
+    """For each weights folder (× each guidance scale of `scales`) on one set of scenes: {"tables": {name: action
+    table}} with "probe_fit" (one probe for all) when `tables` has "actions", and {"fidelity": {name: the
+    evaluation's fidelity table}} when it has "fidelity" (what the guidance costs in PSNR / SSIM / FVMD;
+    `evaluate.metrics` without agent_iou)."""
     GlobalHydra.instance().clear()  # a caller's Hydra (tests compose many configs) must not block this one
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("generate", ["model=gaia2", "data=synthetic_rig", "mode=evaluate", f"weights={folders[0]}",
                                    *overrides])
     gaia2_actions.check_action_agents(cfg)
     gaia2_actions.probe_stride(cfg)
-    if fidelity:
+    if not tables or set(tables) - set(TABLES):
+        raise ValueError(f"--tables {list(tables)}: choose from {list(TABLES)}")
+    if "fidelity" in tables:
         check_metrics(cfg)
         if "agent_iou" in cfg.evaluate.metrics:
             raise ValueError("--fidelity scores evaluate.metrics without a segmentation probe: drop agent_iou, e.g. "
@@ -74,24 +80,25 @@ def adherence(folders: list[str], overrides: list[str], scales: list[float] | No
                  for folder in folders for scale in (scales or [None])}
     frames = cfg.model.steps * next(iter(pipelines.values())).temporal
     started = time.perf_counter()
-    probe, fit = gaia2_actions.train_action_probe(cfg, frames)
+    probe, fit = gaia2_actions.train_action_probe(cfg, frames) if "actions" in tables else (None, None)
     samples = rig_samples(cfg, cfg.context.seed, cfg.model.evaluate.contexts, frames)
-    tables, fidelities = {}, {}
+    actions, fidelities = {}, {}
     for name, pipeline in pipelines.items():
         scenes = [(s, cut_steps(pipeline.encode(s.clip), cfg.model.steps)) for s in samples]
         generator = torch.Generator().manual_seed(int(cfg.seed))  # the same noise for every folder and scale
-        tables[name] = gaia2_actions.action_table(cfg, pipeline, scenes, probe, generator)
-        if fidelity:
+        if "actions" in tables:
+            actions[name] = gaia2_actions.action_table(cfg, pipeline, scenes, probe, generator)
+        if "fidelity" in tables:
             fidelities[name] = fidelity_table(cfg, pipeline, scenes, None, torch.Generator().manual_seed(int(cfg.seed)))
     return {"probe_fit": fit, "seconds": time.perf_counter() - started, "overrides": overrides, "scales": scales,
-            "tables": tables, **({"fidelity": fidelities} if fidelity else {})}
+            "tables": actions, **({"fidelity": fidelities} if "fidelity" in tables else {})}
 
 
 def markdown(result: dict[str, Any]) -> str:
     """One action table per folder (the evaluation's layout), each headed by its folder."""
     lines = [f"Overrides: {' '.join(result['overrides']) or '(none)'}; {result['seconds']:.0f} s", ""]
     lines += fidelity_lines(result.get("fidelity"))
-    first = next(iter(result["tables"]))
+    first = next(iter(result["tables"]), None)
     for name, table in result["tables"].items():
         lines += [f"### weights={name}", "", *gaia2_actions.markdown(table), ""]
         if name != first:
@@ -132,12 +139,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--weights", nargs="+", required=True, help="weights folders (gaia2 or paths)")
     parser.add_argument("--scales", nargs="+", type=float, help="guidance scales, each replacing model.guidance.scale")
-    parser.add_argument("--fidelity", action="store_true",
-                        help="also the evaluation's fidelity table per variant (PSNR / SSIM / FVMD of its rollouts)")
+    parser.add_argument("--tables", nargs="+", choices=TABLES, default=["actions"],
+                        help="actions (default) and/or fidelity: the evaluation's fidelity table per variant")
     parser.add_argument("--out", type=Path, help="folder for action_adherence.{json,md}")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of generate.yaml (after --)")
     args = parser.parse_args(argv)
-    result = adherence(args.weights, args.overrides, args.scales, args.fidelity)
+    result = adherence(args.weights, args.overrides, args.scales, tuple(args.tables))
     table = markdown(result)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)

@@ -98,7 +98,7 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
     other = shutil.copytree(shipped_folder("gaia2"), tmp_path / "other")
     weights = load_file(other / "latent_world_model.safetensors")
     save_file({name: tensor * 0.9 for name, tensor in weights.items()}, other / "latent_world_model.safetensors")
-    result = module.main(["--weights", "gaia2", str(copy), str(other), "--scales", "0", "4", "--fidelity",
+    result = module.main(["--weights", "gaia2", str(copy), str(other), "--scales", "0", "4", "--tables", "actions", "fidelity",
                           "--out", str(tmp_path / "out"), "evaluate.metrics=[psnr,fvmd]", "model.evaluate.contexts=1", "model.evaluate.noise_draws=2",
                           "model.evaluate.probe_clips=2", "model.evaluate.probe_steps=2", "model.sampler.steps=2",
                           "model.guidance.conditions=[action]"])
@@ -123,8 +123,11 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
     assert table.count("paired by scene") == 5 and "speed contrast +0.000 [" in table  # the copy's ×0 table: no change
     with pytest.raises(ValueError, match="probe_stride=5"):
         module.main(["--weights", "gaia2", "--", "model.evaluate.probe_stride=5"])
+    alone = module.main(["--weights", "gaia2", "--tables", "fidelity", "--", "evaluate.metrics=[psnr]",
+                         "model.evaluate.contexts=1", "model.sampler.steps=2"])
+    assert alone["tables"] == {} and alone["probe_fit"] is None and list(alone["fidelity"]) == ["gaia2"]
     with pytest.raises(ValueError, match="drop agent_iou"):
-        module.main(["--weights", "gaia2", "--fidelity"])
+        module.main(["--weights", "gaia2", "--tables", "fidelity"])
     with pytest.raises(ValueError, match="noise_draws=0"):
         module.main(["--weights", "gaia2", "--", "model.evaluate.noise_draws=0", "model.evaluate.contexts=1",
                      "model.evaluate.probe_clips=1", "model.evaluate.probe_steps=1", "model.sampler.steps=1"])
