@@ -11,7 +11,6 @@ the ground-truth agent masks of the real frames those generated frames stand for
 from __future__ import annotations
 
 from collections.abc import Sequence
-from itertools import repeat
 
 import numpy as np
 import torch
@@ -66,18 +65,27 @@ def agent_overlap(probe: AgentSegmentationProbe, frames: torch.Tensor, masks: to
                   region: torch.Tensor | None = None) -> tuple[int, int]:
     """(intersection, union) pixel counts of the probe's agent masks on frames (b, t, 3, H, W) with masks
     (b, t, H, W): per-scene counts, whose sums give the pooled IoU and whose resampling gives its interval.
-    region (b, t, H, W) bool: count only the pixels inside it (e.g. the conditioning boxes); with all-true masks
-    the counts are the probe's agent pixels in the region and the region's area."""
+    region (b, t, H, W) bool: count only the pixels inside it (overlap_counts)."""
     if frames.shape[:2] != masks.shape[:2]:
         raise ValueError(f"agent_iou: frames {tuple(frames.shape)} and masks {tuple(masks.shape)} do not match")
-    if region is not None and region.shape != masks.shape:
-        raise ValueError(f"agent_iou: region {tuple(region.shape)} does not match masks {tuple(masks.shape)}")
-    regions = region.flatten(0, 1).split(chunk) if region is not None else repeat(None)
-    intersection = union = 0
-    for images, truth, inside in zip(frames.flatten(0, 1).split(chunk), masks.flatten(0, 1).split(chunk), regions):
-        predicted = probe(images) > 0
-        if inside is not None:
-            predicted, truth = predicted & inside, truth & inside
-        intersection += int((predicted & truth).sum())
-        union += int((predicted | truth).sum())
-    return intersection, union
+    return overlap_counts(predicted_agents(probe, frames, chunk), masks, region)
+
+
+@torch.no_grad()
+def predicted_agents(probe: AgentSegmentationProbe, frames: torch.Tensor, chunk: int = 64) -> torch.Tensor:
+    """(b, t, H, W) bool: the probe's agent masks on frames (b, t, 3, H, W), `chunk` frames per call."""
+    flat = frames.flatten(0, 1)
+    return torch.cat([probe(images) > 0 for images in flat.split(chunk)]).unflatten(0, frames.shape[:2])
+
+
+def overlap_counts(predicted: torch.Tensor, masks: torch.Tensor, region: torch.Tensor | None = None) -> tuple[int, int]:
+    """(intersection, union) pixel counts of predicted and true agent masks (b, t, H, W), within `region` (b, t, H, W)
+    where given: e.g. the conditioning boxes, and with all-true masks the predicted agent pixels in the region and
+    the region's area."""
+    if predicted.shape != masks.shape:
+        raise ValueError(f"agent_iou: predicted masks {tuple(predicted.shape)} and masks {tuple(masks.shape)} do not match")
+    if region is not None:
+        if region.shape != masks.shape:
+            raise ValueError(f"agent_iou: region {tuple(region.shape)} does not match masks {tuple(masks.shape)}")
+        predicted, masks = predicted & region, masks & region
+    return int((predicted & masks).sum()), int((predicted | masks).sum())

@@ -47,7 +47,7 @@ from tqdm.auto import tqdm
 from gaia_app.data.latent_cache import LatentClip
 from gaia_app.data.synthetic.generate import SyntheticSample
 from gaia_app.data.transforms import to_float
-from gaia_app.eval.agent_iou import agent_overlap, train_agent_probe
+from gaia_app.eval.agent_iou import overlap_counts, predicted_agents, train_agent_probe
 from gaia_app.eval.cross_view import overlapping_pairs, seam_errors
 from gaia_app.eval.intervals import mean_interval, ratio_interval
 from gaia_app.eval.report import ARROWS
@@ -103,32 +103,32 @@ def train_probes_for(cfg: DictConfig, frames: int) -> tuple[Any, Any, dict[str, 
     return segmentation, dynamics, {"agent_probe": agent_fit, "action_probe": action_fit}
 
 
-def scene_overlaps(probe: Any, videos: list[torch.Tensor], masks: list[torch.Tensor],
+def scene_overlaps(predicted: list[torch.Tensor], masks: list[torch.Tensor],
                    regions: list[torch.Tensor] | None = None) -> tuple[list[int], list[int]]:
-    """Per scene, the (intersection, union) pixel counts of the probe's masks on its video (v, T, 3, H, W) with its
-    masks (v, T, H, W), within its region (v, T, H, W) where `regions` is given."""
-    counts = [agent_overlap(probe, video, mask, region=region)
-              for video, mask, region in zip(videos, masks, regions or [None] * len(videos))]
+    """Per scene, the (intersection, union) pixel counts of the probe's masks predicted on its video with its masks
+    (v, T, H, W), within its region (v, T, H, W) where `regions` is given."""
+    counts = [overlap_counts(p, mask, region) for p, mask, region in zip(predicted, masks, regions or [None] * len(masks))]
     return [i for i, _ in counts], [u for _, u in counts]
 
 
-def region_metrics(probe: Any, videos: list[torch.Tensor], truth: list[torch.Tensor],
-                   boxes: list[torch.Tensor]) -> dict[str, tuple[list[int], list[int]]]:
-    """Where guidance can act: the IoU with the agent masks inside the conditioning boxes, and the share of the area
-    outside every box that the probe calls agent (false alarms there: spatially selective CFG leaves those tokens
-    unguided, plain CFG guides them away from the agents-dropped prediction)."""
-    outside = [~box for box in boxes]
-    return {"iou_inside_boxes": scene_overlaps(probe, videos, truth, boxes),
-            "agent_share_outside_boxes": scene_overlaps(probe, videos, [torch.ones_like(box) for box in boxes], outside)}
+def row_overlaps(probe: Any, videos: list[torch.Tensor], truth: list[torch.Tensor],
+                 boxes: list[torch.Tensor]) -> dict[str, tuple[list[int], list[int]]]:
+    """The counts of every agent-table metric for one row's per-scene videos (v, T, 3, H, W), the probe run once per
+    video: IoU with the true agent masks and with the conditioning boxes, and where guidance can act: the IoU with
+    the agent masks inside the boxes, and the share of the area outside every box that the probe calls agent (false
+    alarms there: spatially selective CFG leaves those tokens unguided, plain CFG guides them)."""
+    predicted = [predicted_agents(probe, video) for video in videos]
+    return {"iou_agent_masks": scene_overlaps(predicted, truth),
+            "iou_conditioning_boxes": scene_overlaps(predicted, boxes),
+            "iou_inside_boxes": scene_overlaps(predicted, truth, boxes),
+            "agent_share_outside_boxes": scene_overlaps(predicted, [torch.ones_like(b) for b in boxes], [~b for b in boxes])}
 
 
 def iou_rows(probe: Any, rows: dict[str, list[torch.Tensor]], truth: list[torch.Tensor], boxes: list[torch.Tensor],
              reference: str | None) -> dict[str, dict[str, Any]]:
     """Per row: the pooled IoU with the true agent masks and with the box masks, each with its interval over scenes,
     and for the guided rows other than `reference` their paired difference to it."""
-    overlaps = {name: {"iou_agent_masks": scene_overlaps(probe, videos, truth),
-                       "iou_conditioning_boxes": scene_overlaps(probe, videos, boxes),
-                       **region_metrics(probe, videos, truth, boxes)} for name, videos in rows.items()}
+    overlaps = {name: row_overlaps(probe, videos, truth, boxes) for name, videos in rows.items()}
     table: dict[str, dict[str, Any]] = {}
     for name, counts in overlaps.items():
         table[name] = {}
