@@ -113,8 +113,8 @@ def fidelity_lines(fidelity: dict[str, Any] | None) -> list[str]:
         return []
     some = next(iter(fidelity.values()))
     names = list(some["rows"]["model (rollouts)"])
-    lines = [f"Fidelity ({some['clips']} clips (scene × camera), {some['context_frames']} context + "
-             f"{some['generated_frames']} generated frames)", "",
+    lines = [(f"Fidelity ({some['clips']} clips (scene × camera), {some['context_frames']} context + "
+              f"{some['generated_frames']} generated frames)"), "",
              "| rollouts vs real continuations | " + " | ".join(f"{n} {ARROWS[n]}" for n in names) + " |",
              "|---" + "|---:" * len(names) + "|"]
     rows = {name: table["rows"]["model (rollouts)"] for name, table in fidelity.items()}

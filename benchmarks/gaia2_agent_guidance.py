@@ -47,8 +47,8 @@ def agent_guidance(weights: str, overrides: list[str]) -> dict[str, Any]:
 
 
 def markdown(result: dict[str, Any]) -> str:
-    lines = [f"weights={result['weights']}; overrides: {' '.join(result['overrides']) or '(none)'}; "
-             f"{result['seconds']:.0f} s", ""]
+    lines = [(f"weights={result['weights']}; overrides: {' '.join(result['overrides']) or '(none)'}; "
+              f"{result['seconds']:.0f} s"), ""]
     return "\n".join(lines + gaia2_evaluate.agent_markdown(result["agents"], result["cameras"])) + "\n"
 
 
