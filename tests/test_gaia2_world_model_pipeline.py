@@ -7,7 +7,12 @@ import torch
 from einops import rearrange
 
 from gaia_app.diffusion.flow_matching import FlowSampler
-from gaia_app.pipelines.gaia2_world_model import Guidance, LatentWorldModelPipeline, agent_token_positions, with_window
+from gaia_app.pipelines.gaia2_world_model import (
+    Guidance,
+    LatentWorldModelPipeline,
+    agent_token_positions,
+    with_window,
+)
 from tests.models.test_gaia2_latent_world_model import conditions, model
 
 SHAPE = (1, 3, 3, 8, 8, 14)
@@ -84,3 +89,22 @@ def test_spatially_selective_guidance_touches_only_agent_tokens_and_costs_less()
     assert not torch.allclose(flat["spatial"][:, ~outside], flat["masked"][:, ~outside])
     with pytest.raises(ValueError, match="spatial_pass"):
         Guidance(scale=2.0, spatial=True, spatial_pass="half")
+
+
+def test_guidance_interval_guides_only_the_steps_whose_flow_time_lies_inside_it() -> None:
+    cond, noise = conditions(), torch.randn(SHAPE)
+    taus = torch.tensor([[0.2, 0.5, 1.0]])  # per latent step
+    velocities, counts = {}, {}
+    for name, guidance in {"none": Guidance(), "all": Guidance(scale=4.0, conditions=("action",)),
+                           "early": Guidance(scale=4.0, conditions=("action",), interval=[0.0, 0.4]),
+                           "never": Guidance(scale=4.0, conditions=("action",), interval=[0.6, 0.9])}.items():
+        pipe = pipeline(guidance)
+        velocities[name], counts[name] = pipe.velocity(noise, taus, cond), pipe.counter.tokens
+    assert not torch.allclose(velocities["all"], velocities["none"])
+    torch.testing.assert_close(velocities["early"][:, :, 0], velocities["all"][:, :, 0])  # τ 0.2: guided
+    assert torch.equal(velocities["early"][:, :, 1:], velocities["none"][:, :, 1:])  # τ 0.5 and 1: conditional only
+    # no step inside: the second pass is skipped altogether
+    assert torch.equal(velocities["never"], velocities["none"]) and counts["never"] == counts["none"] == counts["all"] / 2
+    for bad in ([0.5, 0.5], [-0.1, 0.5], [0.2]):
+        with pytest.raises(ValueError, match=r"guidance.interval=.*expected \[lo, hi\] with 0 ≤ lo < hi ≤ 1"):
+            Guidance(scale=2.0, interval=bad)
