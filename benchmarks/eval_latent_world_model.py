@@ -1,4 +1,4 @@
-"""Context prediction of a trained GAIA-2 latent world model on held-out latent-cache windows.
+r"""Context prediction of a trained GAIA-2 latent world model on held-out latent-cache windows.
 
     python benchmarks/eval_latent_world_model.py --world-model-ckpt WM/checkpoints/last.ckpt \
         --tokenizer-ckpt TOK/checkpoints/last.ckpt --latents data/latents/val

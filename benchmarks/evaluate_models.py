@@ -1,4 +1,4 @@
-"""Evaluate GAIA-1 and GAIA-2 checkpoints against held-out synthetic data and print one table.
+r"""Evaluate GAIA-1 and GAIA-2 checkpoints against held-out synthetic data and print one table.
 
     python benchmarks/evaluate_models.py --out outputs/evaluation \
         --gaia1 tokenizer_ckpt=G1TOK world_model_ckpt=G1WM [decoder_ckpt=G1DEC] \

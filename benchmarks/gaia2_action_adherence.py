@@ -1,8 +1,9 @@
-"""GAIA-2 action adherence of several weights folders, or guidance scales, side by side in one run: one action
+r"""GAIA-2 action adherence of several weights folders, or guidance scales, side by side in one run: one action
 probe, the same held-out scenes, commands and noise for every folder and scale. The table is the one of
 `generate.py model=gaia2 mode=evaluate` (gaia_app/tasks/gaia2_actions.py) without the other tables, so two versions
 of the weights compare in about a third of two evaluations' time. `--scales` replaces model.guidance.scale by each
-of its values in turn (0: unguided). Everything after `--` is a Hydra override of generate.yaml.
+of its values in turn (0: unguided), `--intervals` model.guidance.interval (the flow times at which a solver step is
+guided). Everything after `--` is a Hydra override of generate.yaml.
 
     python benchmarks/gaia2_action_adherence.py --weights gaia2 my_weights --out outputs/adherence -- \
         model.evaluate.contexts=16 model.evaluate.probe_clips=256 model.evaluate.probe_steps=3000 \
@@ -39,25 +40,42 @@ from gaia_app.utils.run_dir import atomic_write_text
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
 
-def with_weights(cfg: DictConfig, folder: str, scale: float | None = None) -> DictConfig:
-    """A copy of `cfg` with weights=`folder` and, unless None, model.guidance.scale=`scale`."""
+def with_weights(cfg: DictConfig, folder: str, scale: float | None = None,
+                 interval: tuple[float, float] | None = None) -> DictConfig:
+    """A copy of `cfg` with weights=`folder` and, unless None, model.guidance.scale=`scale` and
+    model.guidance.interval=`interval`."""
     copy = cfg.copy()
     copy.weights = folder
     if scale is not None:
         copy.model.guidance.scale = float(scale)
+    if interval is not None:
+        copy.model.guidance.interval = list(interval)
     return copy
 
 
-def variant_name(folder: str, scale: float | None) -> str:
-    return folder if scale is None else f"{folder}, guidance ×{scale:g}"
+def variant_name(folder: str, scale: float | None, interval: tuple[float, float] | None = None) -> str:
+    name = folder if scale is None else f"{folder}, guidance ×{scale:g}"
+    return name if interval is None else f"{name}, τ ∈ [{interval[0]:g}, {interval[1]:g}]"
+
+
+def parse_interval(text: str) -> tuple[float, float]:
+    """'lo,hi' → (lo, hi): an --intervals value (flow times at which a solver step is guided)."""
+    parts = text.split(",")
+    try:
+        lo, hi = (float(x) for x in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--intervals {text!r}: expected lo,hi, e.g. 0,0.5") from None
+    return lo, hi
 
 
 TABLES = ("actions", "fidelity")
 
 
 def adherence(folders: list[str], overrides: list[str], scales: list[float] | None = None,
-              tables: tuple[str, ...] = ("actions",)) -> dict[str, Any]:
-    """For each weights folder (× each guidance scale of `scales`) on one set of scenes: {"tables": {name: action
+              tables: tuple[str, ...] = ("actions",),
+              intervals: list[tuple[float, float]] | None = None) -> dict[str, Any]:
+    """For each weights folder (× each guidance scale of `scales` × each guidance interval of `intervals`) on one set
+    of scenes: {"tables": {name: action
     table}} with "probe_fit" (one probe for all) when `tables` has "actions", and {"fidelity": {name: the
     evaluation's fidelity table}} when it has "fidelity" (what the guidance costs in PSNR / SSIM / FVMD;
     `evaluate.metrics` without agent_iou)."""
@@ -76,8 +94,9 @@ def adherence(folders: list[str], overrides: list[str], scales: list[float] | No
                              "'evaluate.metrics=[psnr,ssim,fvmd]'")
     if scales is not None and any(scale < 0 for scale in scales):
         raise ValueError(f"--scales {scales}: guidance scales must be ≥ 0")
-    pipelines = {variant_name(folder, scale): load_gaia2(with_weights(cfg, folder, scale))  # a bad folder fails first
-                 for folder in folders for scale in (scales or [None])}
+    pipelines = {variant_name(folder, scale, interval): load_gaia2(with_weights(cfg, folder, scale, interval))
+                 for folder in folders for scale in (scales or [None]) for interval in (intervals or [None])}
+    # (a bad folder or interval fails here, before any probe or rollout)
     frames = cfg.model.steps * next(iter(pipelines.values())).temporal
     started = time.perf_counter()
     probe, fit = gaia2_actions.train_action_probe(cfg, frames) if "actions" in tables else (None, None)
@@ -91,6 +110,7 @@ def adherence(folders: list[str], overrides: list[str], scales: list[float] | No
         if "fidelity" in tables:
             fidelities[name] = fidelity_table(cfg, pipeline, scenes, None, torch.Generator().manual_seed(int(cfg.seed)))
     return {"probe_fit": fit, "seconds": time.perf_counter() - started, "overrides": overrides, "scales": scales,
+            "intervals": intervals,
             "tables": actions, **({"fidelity": fidelities} if "fidelity" in tables else {})}
 
 
@@ -139,12 +159,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--weights", nargs="+", required=True, help="weights folders (gaia2 or paths)")
     parser.add_argument("--scales", nargs="+", type=float, help="guidance scales, each replacing model.guidance.scale")
+    parser.add_argument("--intervals", nargs="+", type=parse_interval,
+                        help="guidance intervals lo,hi (flow time), each replacing model.guidance.interval")
     parser.add_argument("--tables", nargs="+", choices=TABLES, default=["actions"],
                         help="actions (default) and/or fidelity: the evaluation's fidelity table per variant")
     parser.add_argument("--out", type=Path, help="folder for action_adherence.{json,md}")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of generate.yaml (after --)")
     args = parser.parse_args(argv)
-    result = adherence(args.weights, args.overrides, args.scales, tuple(args.tables))
+    result = adherence(args.weights, args.overrides, args.scales, tuple(args.tables), args.intervals)
     table = markdown(result)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)

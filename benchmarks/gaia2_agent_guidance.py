@@ -1,4 +1,4 @@
-"""GAIA-2 agent control under guidance, alone: the agent table of `generate.py model=gaia2 mode=evaluate`
+r"""GAIA-2 agent control under guidance, alone: the agent table of `generate.py model=gaia2 mode=evaluate`
 (gaia_app/tasks/gaia2_evaluate.py) without the fidelity, action and cross-view tables, in about a third of an
 evaluation's time. Besides the pooled IoU with the agent masks it splits where guidance acts: the IoU inside the
 conditioning boxes, and the share of the area outside every box that the probe calls agent. Spatially selective CFG

@@ -1,4 +1,4 @@
-"""What a trained GAIA-2 latent world model reads from its actions and agents, teacher-forced on held-out windows.
+r"""What a trained GAIA-2 latent world model reads from its actions and agents, teacher-forced on held-out windows.
 
     python benchmarks/gaia2_condition_gain.py --world-model-ckpt WM/checkpoints/last.ckpt \
         --latents data/latents/val --out outputs/condition_gain.json

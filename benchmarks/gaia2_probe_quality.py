@@ -1,4 +1,4 @@
-"""Can the GAIA-2 action probe read the commands? Model-free check of gaia_app/tasks/gaia2_actions.py.
+r"""Can the GAIA-2 action probe read the commands? Model-free check of gaia_app/tasks/gaia2_actions.py.
 
 Trains the inverse-dynamics probe as `generate.py model=gaia2 mode=evaluate` does (the settings of
 `model.evaluate`, given as Hydra overrides), then scores the held-out scenes without any world model: the ceiling
@@ -11,6 +11,7 @@ score: if it misses the target floor − ½ (floor − ceiling), the probe, not 
     python benchmarks/gaia2_probe_quality.py model.evaluate.contexts=16 model.evaluate.probe_clips=96 \
         model.evaluate.probe_steps=1500                       # the shipped weights' evaluation protocol
     python benchmarks/gaia2_probe_quality.py … model.evaluate.probe_stride=1   # adjacent frames (before 2026-11-26)
+    python benchmarks/gaia2_probe_quality.py … model.evaluate.probe_cameras=rig  # every camera of the rig
 """
 
 from __future__ import annotations
@@ -47,13 +48,16 @@ def probe_quality(overrides: list[str]) -> dict[str, dict[str, float]]:
     probe, fit = gaia2_actions.train_action_probe(cfg, frames)
     samples = rig_samples(cfg, cfg.context.seed, e.contexts, frames)
     rate = float(samples[0].clip.fps)
-    contexts = probe_clips([s.clip for s in samples], rate, frames)
+    views = gaia2_actions.probe_views(cfg)
+    contexts = probe_clips([s.clip for s in samples], rate, frames, views)
     commands = [tuple(c) for c in e.commands]
     commanded = commanded_actions(contexts, first, frames - first, rate, commands)
-    ceiling = [to_float(torch.from_numpy(gaia2_actions.resimulated(cfg, k % len(samples), commanded[k].numpy()
-                                                                   .astype("float64")).frames[0]))
-               for k in range(len(commanded))]
-    videos = {"ceiling": torch.stack(ceiling), "tokenized": tokenized(load_gaia2(cfg), torch.stack(ceiling)),
+    rigs = [to_float(torch.from_numpy(gaia2_actions.resimulated(cfg, k % len(samples), commanded[k].numpy()
+                                                                .astype("float64")).frames))
+            for k in range(len(commanded))]  # (v, f, 3, H, W) each
+    pipeline = load_gaia2(cfg)
+    videos = {"ceiling": torch.stack([gaia2_actions.views_of(rig, views) for rig in rigs]),
+              "tokenized": torch.stack([gaia2_actions.views_of(tokenized(pipeline, rig), views) for rig in rigs]),
               "reference": torch.cat([contexts.frames] * len(commands))}
     stride = gaia2_actions.probe_stride(cfg)
     rows = {name: error_row(probe, video, commanded, first + stride, len(commands), stride) for name, video in videos.items()}
@@ -66,11 +70,11 @@ def probe_quality(overrides: list[str]) -> dict[str, dict[str, float]]:
 
 
 @torch.no_grad()
-def tokenized(pipeline: Any, video: torch.Tensor) -> torch.Tensor:
-    """Front-camera clips (n, t, 3, H, W) → the same through the pipeline's video tokenizer (posterior mean), as the
-    evaluation's tokenized ceiling."""
+def tokenized(pipeline: Any, rig: torch.Tensor) -> torch.Tensor:
+    """One clip of every camera (v, t, 3, H, W) → the same through the pipeline's video tokenizer (posterior mean),
+    as the evaluation's tokenized ceiling."""
     tokenizer = pipeline.tokenizer
-    return torch.stack([tokenizer.decode(tokenizer.encode(clip[None, None]).mean).clamp(-1, 1)[0, 0] for clip in video])
+    return tokenizer.decode(tokenizer.encode(rig[None]).mean).clamp(-1, 1)[0]
 
 
 def main() -> None:

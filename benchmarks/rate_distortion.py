@@ -1,4 +1,4 @@
-"""Rate–distortion of the GAIA-2 video tokenizer next to the GAIA-1 image tokenizer, on the same held-out clips.
+r"""Rate–distortion of the GAIA-2 video tokenizer next to the GAIA-1 image tokenizer, on the same held-out clips.
 
     python benchmarks/rate_distortion.py --gaia2-ckpt RUN2/checkpoints/last.ckpt [GAN_RUN/checkpoints/last.ckpt] \
         --gaia1-ckpt RUN1/checkpoints/last.ckpt

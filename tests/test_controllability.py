@@ -8,23 +8,35 @@ import torch
 
 from gaia_app.data.synthetic import SyntheticClipDataset
 from gaia_app.eval.controllability import (
-    contrast_errors,
-    contrast_pairs,
-    realised_contrasts,
     action_error,
     action_errors,
     attribute_shares,
+    augment_pairs,
+    contrast_errors,
+    contrast_pairs,
+    jitter,
     load_probes,
     phase_clips,
     probe_clips,
     probed_actions,
+    realised_contrasts,
     save_probes,
     strided_actions,
     train_probes,
 )
-from gaia_app.eval.intervals import mean_interval, ratio_interval, share_interval, t_quantile
+from gaia_app.eval.intervals import (
+    mean_interval,
+    ratio_interval,
+    share_interval,
+    t_quantile,
+)
 from gaia_app.models.probes import ATTRIBUTES, InverseDynamicsProbe, SceneAttributeProbe
-from gaia_app.tasks.controllability import drive, error_row, probe_training_data, random_command
+from gaia_app.tasks.controllability import (
+    drive,
+    error_row,
+    probe_training_data,
+    random_command,
+)
 
 
 @pytest.fixture(scope="module")
@@ -49,6 +61,45 @@ def test_strided_probe_learns_a_tiny_batch_and_refuses_a_stride_the_clips_cannot
     assert fit["last_loss"] < fit["first_loss"] / 3, fit
     with pytest.raises(ValueError, match=r"probe stride 4: expected 1 ≤ stride < 4"):
         train_probes(clips, steps=1, progress=False, stride=4)
+
+
+@pytest.fixture(scope="module")
+def rig_clips():
+    world = SyntheticClipDataset(num_clips=4, seed=5, height=32, width=48, clip_len=13,
+                                 cameras=["front", "front_left", "front_right"])
+    return [world[i] for i in range(4)]
+
+
+def test_rig_probe_clips_keep_the_cameras_in_the_order_asked(rig_clips) -> None:
+    rig = probe_clips(rig_clips, rate=6.25, frames=4, cameras=[0, 2])
+    assert rig.frames.shape == (4, 4, 2, 3, 32, 48)
+    front = probe_clips(rig_clips, rate=6.25, frames=4)
+    right = probe_clips([clip.select_views(["front_right"]) for clip in rig_clips], rate=6.25, frames=4)
+    assert torch.equal(rig.frames[:, :, 0], front.frames) and torch.equal(rig.frames[:, :, 1], right.frames)
+    with pytest.raises(ValueError, match=r"camera indices \[0, 3\], the clip has 3"):
+        probe_clips(rig_clips, rate=6.25, frames=4, cameras=[0, 3])
+
+
+def test_a_mirrored_rig_pair_flips_every_view_swaps_left_and_right_and_negates_curvature() -> None:
+    pair, actions = torch.randn(64, 2, 3, 3, 4, 6), torch.tensor([[5.0, 0.02]]).repeat(64, 1)
+    mirrored, turned = augment_pairs(pair, actions, torch.Generator().manual_seed(0), mirror=[0, 2, 1])
+    flipped = turned[:, 1] < 0
+    assert 0 < flipped.sum() < 64 and torch.equal(turned[:, 0], actions[:, 0])
+    assert torch.equal(mirrored[~flipped], pair[~flipped])
+    assert torch.equal(mirrored[flipped], pair[flipped].flip(-1)[:, :, [0, 2, 1]])
+    with pytest.raises(ValueError, match="a rig of 3 cameras needs its mirror order"):
+        augment_pairs(pair, actions, torch.Generator(), mirror=[0, 1, 1])
+
+
+def test_rig_probe_learns_a_tiny_batch_and_jitters_every_camera_of_a_pair_alike(rig_clips) -> None:
+    rig = probe_clips(rig_clips, rate=6.25, frames=4, cameras=[0, 1, 2])
+    dynamics, _, fit = train_probes(rig, steps=120, batch=8, lr=3e-3, progress=False, mirror=[0, 2, 1])
+    assert dynamics.cameras == 3 and fit["last_loss"] < fit["first_loss"] / 3, fit
+    pair = torch.zeros(2, 2, 3, 3, 4, 4)
+    shifted = jitter(pair, torch.Generator().manual_seed(1))
+    assert torch.equal(shifted[0], shifted[0, 0, 0, 0, 0, 0].expand_as(shifted[0]))  # one gain and offset per pair
+    with pytest.raises(ValueError, match=r"InverseDynamicsProbe\(3 camera\(s\)\): expected pairs \(b, 2, 3, 3, H, W\)"):
+        dynamics(torch.zeros(1, 2, 2, 3, 32, 48))
 
 
 class FrameGap(InverseDynamicsProbe):

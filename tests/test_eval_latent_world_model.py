@@ -87,6 +87,7 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
     table per variant."""
     import shutil
 
+    from hydra.errors import InstantiationException
     from safetensors.torch import load_file, save_file
 
     from gaia_app.utils.shipped import shipped_folder
@@ -128,6 +129,16 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
     assert alone["tables"] == {} and alone["probe_fit"] is None and list(alone["fidelity"]) == ["gaia2"]
     with pytest.raises(ValueError, match="drop agent_iou"):
         module.main(["--weights", "gaia2", "--tables", "fidelity"])
+    # guidance intervals: no solver step of a 2-step sampler lies in τ ∈ [0.9, 1], so ×4 there is the unguided model
+    spans = module.main(["--weights", "gaia2", "--scales", "0", "4", "--intervals", "0,1", "0.9,1", "--tables", "fidelity",
+                         "--", "evaluate.metrics=[psnr]", "model.evaluate.contexts=1", "model.sampler.steps=2",
+                         "model.guidance.conditions=[action]"])["fidelity"]
+    unguided = spans["gaia2, guidance ×0, τ ∈ [0, 1]"]
+    assert spans["gaia2, guidance ×4, τ ∈ [0.9, 1]"] == unguided == spans["gaia2, guidance ×0, τ ∈ [0.9, 1]"]
+    assert spans["gaia2, guidance ×4, τ ∈ [0, 1]"]["rows"]["model (rollouts)"] != unguided["rows"]["model (rollouts)"]
+    with pytest.raises(InstantiationException, match=r"guidance.interval=\[0.5, 0.2\]: expected \[lo, hi\]"):
+        module.main(["--weights", "gaia2", "--scales", "4", "--intervals", "0.5,0.2", "--tables", "fidelity", "--",
+                     "evaluate.metrics=[psnr]"])
     with pytest.raises(ValueError, match="noise_draws=0"):
         module.main(["--weights", "gaia2", "--", "model.evaluate.noise_draws=0", "model.evaluate.contexts=1",
                      "model.evaluate.probe_clips=1", "model.evaluate.probe_steps=1", "model.sampler.steps=1"])

@@ -3,9 +3,17 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
+import torch
 from hydra import compose, initialize_config_dir
 
-from gaia_app.tasks.gaia2_actions import resimulated, rig_world
+from gaia_app.tasks.gaia2_actions import (
+    mirror_order,
+    probe_views,
+    resimulated,
+    rig_world,
+    views_of,
+)
 from tests.test_configs import CONF_DIR
 
 
@@ -26,3 +34,24 @@ def test_resimulating_the_scene_with_its_own_actions_reproduces_it_and_a_command
     braked = resimulated(cfg, 0, braking)
     np.testing.assert_array_equal(braked.frames[:, :6], again.frames[:, :6])  # the context is untouched
     assert np.abs(braked.frames[:, 8:].astype(int) - scene.frames[:, 8:].astype(int)).mean() > 1.0
+
+
+def test_the_rig_probe_reads_every_camera_in_rig_order_and_mirrors_left_and_right() -> None:
+    cfg = rig_config()
+    assert probe_views(cfg) == [0, 1, 2]  # the default: every camera, in rig order
+    cfg.model.evaluate.probe_cameras = "front"
+    assert probe_views(cfg) is None  # the rig's first camera alone
+    assert mirror_order(["front", "front_left", "front_right"]) == [0, 2, 1]
+    assert mirror_order(["rear_left", "front", "rear_right"]) == [2, 1, 0]
+    frames = torch.arange(3 * 4 * 3 * 4 * 4, dtype=torch.float32).view(3, 4, 3, 4, 4)  # (v, t, 3, H, W)
+    assert torch.equal(views_of(frames, None), frames[0])
+    assert torch.equal(views_of(frames, [0, 1, 2])[2, 1], frames[1, 2])  # (t, k, 3, H, W)
+
+
+def test_the_rig_probe_refuses_a_rig_without_mirror_twins_and_an_unknown_choice() -> None:
+    with pytest.raises(ValueError, match=r"\['front_left'\] have no mirror twin"):
+        mirror_order(["front", "front_left"])
+    cfg = rig_config()
+    cfg.model.evaluate.probe_cameras = "all"
+    with pytest.raises(ValueError, match=r"model.evaluate.probe_cameras='all': expected one of \('front', 'rig'\)"):
+        probe_views(cfg)

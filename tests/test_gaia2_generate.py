@@ -247,6 +247,7 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     assert "| model, each camera generated alone (floor) |" in table
     # 8 generated frames, the probe reads pairs 2 frames apart (model.evaluate.probe_stride): 6 pairs of generated frames
     assert results["actions"]["probe_stride"] == 2 and results["actions"]["scored_steps"] == 6
+    assert results["actions"]["probe_cameras"] == "rig" and "Action adherence (every camera of the rig," in table
 
     # one table with a GAIA-1 evaluation run (its evaluation.json layout, tasks/evaluate.py)
     gaia1 = tmp_path / "gaia1"

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import yaml
+from einops import rearrange
 from tqdm.auto import tqdm
 
 from gaia_app.data.clip import Clip
@@ -33,7 +34,8 @@ PROBE_WEIGHTS, PROBE_INFO = "probes.safetensors", "probes.yaml"
 
 @dataclass
 class ProbeClips:
-    """frames (N, t, 3, H, W) in [-1, 1], actions (N, t, 2), labels {attribute: (N, t) class index}."""
+    """frames (N, t, 3, H, W) in [-1, 1] (one camera) or (N, t, k, 3, H, W) (k cameras of a rig), actions (N, t, 2),
+    labels {attribute: (N, t) class index}."""
 
     frames: torch.Tensor
     actions: torch.Tensor
@@ -50,15 +52,19 @@ def attribute_labels(clip: Clip) -> dict[str, np.ndarray]:
             "traffic_light": np.array([ATTRIBUTES["traffic_light"].index(s) for s in lights])}
 
 
-def probe_clips(clips: Sequence[Clip], rate: float, frames: int) -> ProbeClips:
-    """The first camera of each clip, resampled to `rate`, its first `frames` frames (all clips need as many)."""
+def probe_clips(clips: Sequence[Clip], rate: float, frames: int, cameras: Sequence[int] | None = None) -> ProbeClips:
+    """Each clip resampled to `rate`, its first `frames` frames (all clips need as many): the first camera
+    (frames (N, t, 3, H, W)), or with `cameras` those camera indices in that order (frames (N, t, k, 3, H, W))."""
     out = {"frames": [], "actions": [], "labels": []}
     for clip in clips:
         clip = resample_clip(clip, rate)
         if clip.frames.shape[1] < frames or clip.actions is None:
             raise ValueError(f"probe clip '{clip.clip_id}': {clip.frames.shape[1]} frames at {rate:g} Hz "
                              f"(need {frames}) and actions are required")
-        out["frames"].append(to_float(torch.from_numpy(clip.frames[0, :frames])))
+        if cameras is not None and not all(0 <= c < clip.num_views for c in cameras):
+            raise ValueError(f"probe clip '{clip.clip_id}': camera indices {list(cameras)}, the clip has {clip.num_views}")
+        views = clip.frames[0, :frames] if cameras is None else rearrange(clip.frames[list(cameras), :frames], "k t ... -> t k ...")
+        out["frames"].append(to_float(torch.from_numpy(np.ascontiguousarray(views))))
         out["actions"].append(torch.from_numpy(clip.actions[:frames]))
         out["labels"].append(attribute_labels(clip))
     labels = {name: torch.from_numpy(np.stack([lab[name][:frames] for lab in out["labels"]])) for name in ATTRIBUTES}
@@ -95,30 +101,40 @@ def cat_probe_clips(parts: Sequence[ProbeClips]) -> ProbeClips:
                       {name: torch.cat([p.labels[name] for p in parts]) for name in ATTRIBUTES})
 
 
-def augment_pairs(pair: torch.Tensor, actions: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mirror half of the pairs (b, 2, 3, H, W) left–right and negate their curvature: a left turn seen in a
-    mirror is a right turn, so every scene teaches both signs (weather, time of day and lights are unchanged)."""
+def augment_pairs(pair: torch.Tensor, actions: torch.Tensor, generator: torch.Generator,
+                  mirror: Sequence[int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mirror half of the pairs left–right and negate their curvature: a left turn seen in a mirror is a right turn,
+    so every scene teaches both signs (weather, time of day and lights are unchanged). pair (b, 2, 3, H, W), or
+    (b, 2, k, 3, H, W) for a rig whose mirror image puts camera `mirror[j]` where camera j was (a left-right
+    symmetric rig: front stays, front_left and front_right swap)."""
+    if pair.dim() == 6 and (mirror is None or sorted(mirror) != list(range(pair.shape[2]))):
+        raise ValueError(f"augment_pairs: a rig of {pair.shape[2]} cameras needs its mirror order (a permutation), got {mirror}")
+    mirrored = pair.flip(-1) if pair.dim() == 5 else pair.flip(-1)[:, :, list(mirror)]
     flip = torch.rand(len(pair), generator=generator) < 0.5
-    pair = torch.where(flip[:, None, None, None, None], pair.flip(-1), pair)
+    pair = torch.where(flip.view(-1, *[1] * (pair.dim() - 1)), mirrored, pair)
     return pair, torch.where(flip[:, None], actions * torch.tensor([1.0, -1.0]), actions)
 
 
 def jitter(pair: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
     """Random gain and offset per pair (both frames alike): the inverse-dynamics probe must read motion, not the
     brightness of a scene it has memorised. Not for the scene probe, for which brightness is time of day."""
-    gain = torch.empty(len(pair), 1, 1, 1, 1).uniform_(0.6, 1.4, generator=generator)
-    offset = torch.empty(len(pair), 1, 1, 1, 1).uniform_(-0.2, 0.2, generator=generator)
+    shape = (len(pair), *[1] * (pair.dim() - 1))  # one gain and offset per pair, every frame and camera of it alike
+    gain = torch.empty(shape).uniform_(0.6, 1.4, generator=generator)
+    offset = torch.empty(shape).uniform_(-0.2, 0.2, generator=generator)
     return ((pair + 1) * gain - 1 + offset).clamp(-1, 1)
 
 
 def train_probes(data: ProbeClips, steps: int = 1500, batch: int = 32, lr: float = 2e-3, seed: int = 0,
-                 progress: bool = True, stride: int = 1) -> tuple[InverseDynamicsProbe, SceneAttributeProbe, dict[str, float]]:
+                 progress: bool = True, stride: int = 1,
+                 mirror: Sequence[int] | None = None) -> tuple[InverseDynamicsProbe, SceneAttributeProbe, dict[str, float]]:
     """Fit both probes on random frame pairs / frames of `data` (AdamW, cosine decay to lr/20); returns them in
     eval mode and their first/last losses. The inverse-dynamics probe reads pairs `stride` frames apart and learns
-    the mean action over the steps between them (`strided_actions`)."""
+    the mean action over the steps between them (`strided_actions`). With a rig's frames (N, t, k, 3, H, W) it reads
+    all k cameras (mirrored with the order `mirror`, `augment_pairs`) and the scene probe the first one."""
     generator = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
-    dynamics, scene = InverseDynamicsProbe(), SceneAttributeProbe()
+    rig = data.frames.dim() == 6
+    dynamics, scene = InverseDynamicsProbe(cameras=data.frames.shape[2] if rig else 1), SceneAttributeProbe()
     optim = torch.optim.AdamW([*dynamics.parameters(), *scene.parameters()], lr=lr, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optim, max(1, steps), eta_min=lr / 20)
     n, t = data.frames.shape[:2]
@@ -131,8 +147,8 @@ def train_probes(data: ProbeClips, steps: int = 1500, batch: int = 32, lr: float
         step = torch.randint(stride, t, (batch,), generator=generator)
         pair = torch.stack([data.frames[clip, step - stride], data.frames[clip, step]], dim=1)
         labels = {name: data.labels[name][clip, step] for name in ATTRIBUTES}
-        pair, actions = augment_pairs(pair, moves[clip, step - 1], generator)
-        loss = dynamics.loss(jitter(pair, generator), actions) + scene.loss(pair[:, 1], labels)
+        pair, actions = augment_pairs(pair, moves[clip, step - 1], generator, mirror)
+        loss = dynamics.loss(jitter(pair, generator), actions) + scene.loss(pair[:, 1, 0] if rig else pair[:, 1], labels)
         optim.zero_grad()
         loss.backward()
         optim.step()
@@ -154,7 +170,7 @@ def strided_actions(actions: torch.Tensor, stride: int) -> torch.Tensor:
 @torch.no_grad()
 def probed_actions(probe: InverseDynamicsProbe, frames: torch.Tensor, start: int, stride: int = 1) -> torch.Tensor:
     """(b, t - start, 2) probed (speed, curvature) moving frame i − stride to frame i, for i = start..t-1;
-    frames (b, t, 3, H, W); start ≥ stride."""
+    frames (b, t, 3, H, W), or (b, t, k, 3, H, W) for a rig probe; start ≥ stride."""
     t = frames.shape[1]
     if not stride <= start < t:  # a pair must start inside the clip; a negative index would wrap around silently
         raise ValueError(f"probed_actions: start {start} must lie in [stride {stride}, frames {t})")

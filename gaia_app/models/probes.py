@@ -68,14 +68,21 @@ class InverseDynamicsProbe(nn.Module):
     ±12 pixels), pooled to a 2 × 4 grid so the head knows where in the image the motion is. Without the cost
     volumes a probe trained on 256 scenes read curvature on new scenes no better than a constant (0.0132 vs 0.0148
     1/m mean error, benchmarks/probe_quality.py; docs/generate.md). H and W must be multiples of 4.
+
+    With `cameras` = k > 1 it reads a rig: the same encoder runs on each camera's pair and the head sees the k
+    encodings side by side in rig order. Side cameras see the road stream past (speed) where the front camera sees it
+    only loom, and every view shifts sideways in a turn (GAIA-2's rig; docs/latent_world_model.md, "Evaluation").
     """
 
     def __init__(self, widths: Sequence[int] = (64, 96, 128), grid: tuple[int, int] = (2, 4), hidden: int = 128,
-                 radius: int = 3):
+                 radius: int = 3, cameras: int = 1):
         super().__init__()
-        self.radius = radius
+        if cameras < 1:
+            raise ValueError(f"InverseDynamicsProbe: cameras={cameras}, expected ≥ 1")
+        self.radius, self.cameras = radius, cameras
         self.encoder = FrameEncoder(9 + 2 * (2 * radius + 1) ** 2, widths, grid)
-        self.head = nn.Sequential(nn.Linear(self.encoder.dim, hidden), nn.SiLU(), nn.Linear(hidden, 2))
+        # one encoder for every camera; the head sees them side by side in rig order, so it knows which view moved how
+        self.head = nn.Sequential(nn.Linear(cameras * self.encoder.dim, hidden), nn.SiLU(), nn.Linear(hidden, 2))
 
     def features(self, pair: torch.Tensor) -> torch.Tensor:
         """pair (b, 2, 3, H, W) → (b, 9 + 2 (2r + 1)², H/2, W/2): frames, difference, cost volumes at ½ and ¼."""
@@ -89,12 +96,20 @@ class InverseDynamicsProbe(nn.Module):
                           cost_volume(half[:, 0], half[:, 1], self.radius), coarse], dim=1)
 
     def forward(self, pair: torch.Tensor) -> torch.Tensor:
-        """pair: (b, 2, 3, H, W), earlier frame first → (b, 2) speed and curvature in physical units."""
-        out = self.head(self.encoder(self.features(pair)))
+        """pair: (b, 2, 3, H, W) for one camera or (b, 2, k, 3, H, W) for k = `cameras` of a rig, earlier frame first
+        → (b, 2) speed and curvature in physical units."""
+        if self.cameras == 1 and pair.dim() == 5:
+            pair = pair.unsqueeze(2)
+        if pair.dim() != 6 or pair.shape[2] != self.cameras:
+            raise ValueError(f"InverseDynamicsProbe({self.cameras} camera(s)): expected pairs (b, 2, {self.cameras}, 3, H, W)"
+                             f"{' or (b, 2, 3, H, W)' if self.cameras == 1 else ''}, got {tuple(pair.shape)}")
+        views = rearrange(pair, "b t k c h w -> (b k) t c h w")
+        encoded = rearrange(self.encoder(self.features(views)), "(b k) d -> b (k d)", k=self.cameras)
+        out = self.head(encoded)
         return out / torch.tensor([1.0, CURVATURE_SCALE], device=out.device)
 
     def loss(self, pair: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """Smooth-L1 on speed and on curvature × CURVATURE_SCALE; actions: (b, 2)."""
+        """Smooth-L1 on speed and on curvature × CURVATURE_SCALE; pair as in `forward`, actions: (b, 2)."""
         scale = torch.tensor([1.0, CURVATURE_SCALE], device=actions.device)
         return nn.functional.smooth_l1_loss(self(pair) * scale, actions * scale)
 

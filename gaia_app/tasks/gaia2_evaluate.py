@@ -18,8 +18,9 @@ conditioning boxes projected into each camera, for
     model, agents dropped       generated with the agent condition dropped (the floor)
 Each IoU carries a 95 % interval (scenes resampled), and the guided rows their paired difference to plain CFG on the
 same scenes and noise.
-Action adherence (front camera): GAIA-1's controllability protocol, contrast errors against a re-simulated
-ceiling, a floor with actions dropped and the real continuation (gaia_app/tasks/gaia2_actions.py).
+Action adherence (the front camera or the whole rig, `model.evaluate.probe_cameras`): GAIA-1's controllability
+protocol, contrast errors against a re-simulated ceiling, a floor with actions dropped and the real continuation
+(gaia_app/tasks/gaia2_actions.py).
 Fidelity (every camera; the metrics of `evaluate.metrics`, shared with GAIA-1's mode=evaluate and scored by the same
 code, tasks/evaluate.score): the context steps continued under the scene's own conditions, scored from the first
 generated frame against the real continuation, next to the tokenized real clip (ceiling) and the last context frame
@@ -96,8 +97,8 @@ def train_segmentation_probe(cfg: DictConfig, frames: int) -> tuple[Any, dict[st
 
 
 def train_probes_for(cfg: DictConfig, frames: int) -> tuple[Any, Any, dict[str, Any]]:
-    """The agent segmentation probe (train_segmentation_probe) and the inverse-dynamics probe (front camera,
-    gaia2_actions.train_action_probe)."""
+    """The agent segmentation probe (train_segmentation_probe) and the inverse-dynamics probe (the front camera or
+    the rig, gaia2_actions.train_action_probe)."""
     segmentation, agent_fit = train_segmentation_probe(cfg, frames)
     dynamics, action_fit = gaia2_actions.train_action_probe(cfg, frames)
     return segmentation, dynamics, {"agent_probe": agent_fit, "action_probe": action_fit}
