@@ -85,6 +85,7 @@ def adherence(folders: list[str], overrides: list[str], scales: list[float] | No
                                    *overrides])
     gaia2_actions.check_action_agents(cfg)
     gaia2_actions.probe_stride(cfg)
+    gaia2_actions.probe_mirror(cfg)
     if not tables or set(tables) - set(TABLES):
         raise ValueError(f"--tables {list(tables)}: choose from {list(TABLES)}")
     if "fidelity" in tables:

@@ -9,6 +9,7 @@ from hydra import compose, initialize_config_dir
 
 from gaia_app.tasks.gaia2_actions import (
     mirror_order,
+    probe_mirror,
     probe_views,
     resimulated,
     rig_world,
@@ -52,6 +53,11 @@ def test_the_rig_probe_refuses_a_rig_without_mirror_twins_and_an_unknown_choice(
     with pytest.raises(ValueError, match=r"\['front_left'\] have no mirror twin"):
         mirror_order(["front", "front_left"])
     cfg = rig_config()
+    cfg.data.source.cameras = ["front", "front_left"]
+    with pytest.raises(ValueError, match=r"use model.evaluate.probe_cameras=front"):
+        probe_mirror(cfg)
+    cfg.model.evaluate.probe_cameras = "front"
+    assert probe_mirror(cfg) is None
     cfg.model.evaluate.probe_cameras = "all"
     with pytest.raises(ValueError, match=r"model.evaluate.probe_cameras='all': expected one of \('front', 'rig'\)"):
         probe_views(cfg)

@@ -81,12 +81,12 @@ def rig_world(cfg: DictConfig, seed: int, count: int, frames: int, **overrides: 
 def train_action_probe(cfg: DictConfig, frames: int) -> tuple[InverseDynamicsProbe, dict[str, float]]:
     """The inverse-dynamics probe of the module docstring, and its fit (first/last loss)."""
     e, views = cfg.model.evaluate, probe_views(cfg)
-    names = resolve_camera_names(cfg.data.source.cameras)
+    names, mirror = resolve_camera_names(cfg.data.source.cameras), probe_mirror(cfg)
     world = rig_world(cfg, e.probe_seed, e.probe_clips, frames, cameras=names if views else names[:1],
                       driven_share=e.probe_driven_share, **UNIFORM_MIX)
     clips = [world[i] for i in tqdm(range(e.probe_clips), desc="action probe clips")]
     dynamics, _, fit = train_probes(probe_clips(clips, clips[0].fps, frames, views), e.probe_steps, seed=cfg.seed,
-                                    stride=probe_stride(cfg), mirror=mirror_order(names) if views else None)
+                                    stride=probe_stride(cfg), mirror=mirror)
     return dynamics, fit
 
 
@@ -97,6 +97,12 @@ def probe_views(cfg: DictConfig) -> list[int] | None:
     if value not in PROBE_CAMERAS:
         raise ValueError(f"model.evaluate.probe_cameras={value!r}: expected one of {PROBE_CAMERAS}")
     return None if value == "front" else list(range(len(resolve_camera_names(cfg.data.source.cameras))))
+
+
+def probe_mirror(cfg: DictConfig) -> list[int] | None:
+    """The rig probe's mirror order (`mirror_order` of the rig's cameras), None for the front camera; ValueError for an
+    unknown `model.evaluate.probe_cameras` or a rig without mirror twins (callers check it before rendering)."""
+    return mirror_order(resolve_camera_names(cfg.data.source.cameras)) if probe_views(cfg) else None
 
 
 def mirror_order(names: list[str]) -> list[int]:

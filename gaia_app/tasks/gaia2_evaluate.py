@@ -311,6 +311,7 @@ def gaia2_evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         raise ValueError(f"model.evaluate.contexts={e.contexts}: expected at least 1")
     check_metrics(cfg)
     gaia2_actions.check_action_agents(cfg)
+    gaia2_actions.probe_mirror(cfg)
     pipeline = load_gaia2(cfg)
     frames = cfg.model.steps * pipeline.temporal
     segmentation, dynamics, fit = train_probes_for(cfg, frames)
