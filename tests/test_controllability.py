@@ -98,6 +98,10 @@ def test_rig_probe_learns_a_tiny_batch_and_jitters_every_camera_of_a_pair_alike(
     pair = torch.zeros(2, 2, 3, 3, 4, 4)
     shifted = jitter(pair, torch.Generator().manual_seed(1))
     assert torch.equal(shifted[0], shifted[0, 0, 0, 0, 0, 0].expand_as(shifted[0]))  # one gain and offset per pair
+    pair = rig.frames[:2, :2].clone()  # (2, 2, 3 cameras, 3, H, W)
+    moved = pair.clone()
+    moved[:, 1, 2] = moved[:, 1, 2].roll(3, dims=-1)  # only the right camera's second frame changes
+    assert not torch.allclose(dynamics(pair), dynamics(moved))  # every camera reaches the head
     with pytest.raises(ValueError, match=r"InverseDynamicsProbe\(3 camera\(s\)\): expected pairs \(b, 2, 3, 3, H, W\)"):
         dynamics(torch.zeros(1, 2, 2, 3, 32, 48))
 
