@@ -270,3 +270,62 @@ def test_floor_calibration_reads_real_clips_and_each_picker(shipped: Path, tmp_p
     assert results["tv"]["real clips (default mix)"] == {"time_of_day": 0.0, "weather": 0.0}
     night = results["rows"]["top_p p=0.9"]["time_of_day"]["night"]
     assert 0 <= night[1] <= night[0] <= night[2] <= 1 and "| top_k k=50 |" in (tmp_path / "results.md").read_text()
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_showcase_futures_share_their_noise_when_asked(shipped: Path, tmp_path: Path, shared: bool) -> None:
+    """Two identical commands: with showcase.shared_noise their futures are one future; without, two draws."""
+    from gaia_app.tasks.rollout import load_pipeline
+    from gaia_app.tasks.showcase import command_panel
+
+    cfg = compose_config("generate", ["mode=showcase", f"weights={shipped}", "context.frames=2", "seconds=0.5",
+                                      "showcase.commands=[[keep,straight],[keep,straight]]",
+                                      f"showcase.shared_noise={str(shared).lower()}", *SIZE], tmp_path)
+    futures = command_panel(cfg, load_pipeline(cfg), torch.Generator().manual_seed(0))["futures"]
+    assert torch.equal(futures[0], futures[1]) == shared
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_controllability_shares_noise_within_a_context_when_asked(shipped: Path, tmp_path: Path, monkeypatch,
+                                                                  shared: bool) -> None:
+    """controllability.shared_noise hands the model row one noise group per context (command-major batch)."""
+    from gaia_app.tasks import controllability
+
+    groups = []
+    original = controllability.rollout_frames
+
+    def recording(*args, **kwargs):
+        groups.append(args[7] if len(args) > 7 else kwargs.get("noise_groups"))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(controllability, "rollout_frames", recording)
+    cfg = compose_config("generate", ["mode=controllability", f"weights={shipped}", "seconds=0.5",
+                                      "controllability.contexts=2", "controllability.commands=[[brake,left],[keep,right]]",
+                                      f"controllability.shared_noise={str(shared).lower()}", *SIZE], tmp_path)
+    pipeline = controllability.load_pipeline(cfg, video_decoder=False)
+    probe = controllability.probes_for(cfg, pipeline, 6, tmp_path)[0]
+    controllability.action_table(cfg, pipeline, probe, torch.Generator().manual_seed(0))
+    model_groups = groups[0]  # the model row rolls out first, then the floor (no actions, no groups)
+    assert (model_groups.tolist() == [0, 1, 0, 1]) if shared else model_groups is None
+    assert groups[1] is None
+
+
+def test_shared_noise_benchmark_scores_both_couplings_per_seed(shipped: Path, tmp_path: Path, monkeypatch) -> None:
+    """benchmarks/shared_noise_adherence.py: ceiling, floor, and the model per seed and coupling, paired."""
+    import json
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import shared_noise_adherence
+
+    monkeypatch.setattr(sys, "argv", ["shared_noise_adherence.py", f"--weights={shipped}", "--seeds", "1", "2",
+                                      f"--out={tmp_path}", "--", "context.frames=2", "seconds=0.5",
+                                      "controllability.contexts=2", "token_sampler.progress=false"])
+    shared_noise_adherence.main()
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert list(results["rows"]) == ["ceiling", "floor", "independent, seed 1", "shared, seed 1",
+                                     "independent, seed 2", "shared, seed 2"]
+    speed = results["summary"]["speed_contrast"]
+    assert len(speed["shared"]["per_seed"]) == 2 and speed["floor"] > 0
+    assert speed["shared_minus_independent"]["n"] == 2  # paired over the two contexts
+    assert "| speed_contrast | shared |" in (tmp_path / "results.md").read_text()

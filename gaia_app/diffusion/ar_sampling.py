@@ -16,6 +16,7 @@ state between frames, so a closed loop can append each step's conditions as they
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -79,11 +80,16 @@ class TokenPicker:
         if self.mode not in MODES or self.k < 1 or self.temperature <= 0 or not 0 < self.p <= 1:
             raise ValueError(f"TokenPicker: mode in {MODES}, k ≥ 1, temperature > 0, 0 < p ≤ 1; got {self}")
 
-    def __call__(self, logits: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-        """(b, V) logits → (b,) int64 tokens."""
+    def __call__(self, logits: torch.Tensor, generator: torch.Generator | None = None,
+                 gumbel: torch.Tensor | None = None) -> torch.Tensor:
+        """(b, V) logits → (b,) int64 tokens. gumbel (b, V): standard Gumbel noise per vocabulary entry; when given,
+        the token is the Gumbel-max choice among the allowed tokens (the same distribution as without it), so rows
+        handed the same noise pick the same token wherever their logits agree (`shared_gumbel`)."""
         if self.mode == "argmax":
             return logits.argmax(-1)
         logits = logits.float() / self.temperature
+        if gumbel is not None:
+            return (self.allowed(logits) + gumbel).argmax(-1)
         if self.mode == "top_k":
             top, index = logits.topk(min(self.k, logits.shape[-1]), dim=-1)
             choice = torch.multinomial(top.softmax(-1), 1, generator=generator)
@@ -91,6 +97,40 @@ class TokenPicker:
         if self.mode == "top_p":
             return nucleus_sample(logits, self.p, generator)
         return torch.multinomial(logits.softmax(-1), 1, generator=generator).squeeze(-1)
+
+
+    def allowed(self, logits: torch.Tensor) -> torch.Tensor:
+        """(b, V) tempered logits → the same with every token this picker cannot choose at −inf."""
+        if self.mode == "sample":
+            return logits
+        if self.mode == "top_k":
+            index = logits.topk(min(self.k, logits.shape[-1]), dim=-1).indices
+        else:
+            probs, index = logits.softmax(-1).sort(dim=-1, descending=True)
+            index = index.masked_fill(probs.cumsum(-1) - probs >= self.p, -1)  # outside the nucleus
+            index = torch.where(index < 0, index[:, :1], index)  # the most likely token stands in for them
+        keep = torch.zeros_like(logits, dtype=torch.bool).scatter_(-1, index, True)
+        return logits.masked_fill(~keep, -math.inf)
+
+
+def shared_gumbel(groups: torch.Tensor, vocabulary: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Standard Gumbel noise (b, V), one draw per group: rows with equal `groups` (b,) int64 get the same noise.
+
+    Counterfactual sampling (Gumbel-max coupling, Oberst & Sontag 2019): futures of one context under different
+    commands share every draw, so where the command does not change the logits they pick the same tokens, and
+    their differences come from the commands rather than from sampling luck, as re-simulated real futures share
+    their world's randomness. Each future's own distribution is unchanged."""
+    count = int(groups.max()) + 1
+    exponential = torch.empty(count, vocabulary, device=groups.device).exponential_(generator=generator)
+    return -exponential.clamp_min(torch.finfo(torch.float32).tiny).log()[groups]
+
+
+def check_groups(groups: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+    """noise_groups (b,) int64 ≥ 0 for a context (b, t0, n), moved to its device; ValueError otherwise."""
+    if groups.shape != context.shape[:1] or groups.dtype != torch.long or (len(groups) and int(groups.min()) < 0):
+        raise ValueError(f"noise_groups: expected ({context.shape[0]},) int64 ≥ 0, one per rollout; got "
+                         f"{tuple(groups.shape)} {groups.dtype}")
+    return groups.to(context.device)
 
 
 def nucleus_sample(logits: torch.Tensor, p: float, generator: torch.Generator | None = None) -> torch.Tensor:
@@ -141,16 +181,17 @@ class AutoregressiveSampler:
     def __call__(self, net: TokenWorldModel, context: torch.Tensor, cond: StepConditions,
                  uncond: StepConditions | None = None,
                  frames: int = 1, guidance: ClassifierFreeGuidance | None = None,
-                 generator: torch.Generator | None = None) -> torch.Tensor:
+                 generator: torch.Generator | None = None, noise_groups: torch.Tensor | None = None) -> torch.Tensor:
         """Context (b, t0, n) int64 and conditions for t0 + f steps → tokens (b, t0 + f, n).
 
         With `guidance`, `uncond` (the unconditioned or negative-prompt stream) runs in the same
-        forward as `cond`, stacked on the batch; eq. 3 combines their logits per token.
+        forward as `cond`, stacked on the batch; eq. 3 combines their logits per token. noise_groups (b,) int64:
+        rows with equal values share their sampling noise (`shared_gumbel`); None: every row draws its own.
         """
         _, t0, n = context.shape
         if cond.text.shape[1] < t0 + frames:
             raise ValueError(f"conditions cover {cond.text.shape[1]} steps, need t0 + frames = {t0 + frames}")
-        session = self.session(net, context, cond, uncond, guidance, generator)
+        session = self.session(net, context, cond, uncond, guidance, generator, noise_groups=noise_groups)
         scales = guidance.scales(frames, n) if guidance is not None else None
         new = [session.next_frame(None if scales is None else scales[k])
                for k in tqdm(range(frames), desc="world model", unit="frame", disable=not self.progress)]
@@ -158,9 +199,10 @@ class AutoregressiveSampler:
 
     def session(self, net: TokenWorldModel, context: torch.Tensor, cond: StepConditions,
                 uncond: StepConditions | None = None, guidance: ClassifierFreeGuidance | None = None,
-                generator: torch.Generator | None = None, given: tuple[str, ...] = ()) -> SamplingSession:
+                generator: torch.Generator | None = None, given: tuple[str, ...] = (),
+                noise_groups: torch.Tensor | None = None) -> SamplingSession:
         """A rollout advanced one frame per call (`SamplingSession.next_frame`), its KV cache kept in between."""
-        return SamplingSession(self, net, context, cond, uncond, guidance, generator, given)
+        return SamplingSession(self, net, context, cond, uncond, guidance, generator, given, noise_groups)
 
 
 class SamplingSession:
@@ -179,12 +221,14 @@ class SamplingSession:
     context (b, t0, n) int64; cond, uncond: conditions of at least the t0 context steps (GAIA-1 §5.1 eq. 3 runs
     uncond in the same forward, stacked on the batch). given: names of the condition streams the caller built
     them from (e.g. "text", "negative"), so the caller can check that later steps bring the same ones.
+    noise_groups (b,) int64: rows with equal values share every sampling draw (`shared_gumbel`; e.g. one context
+    under several commands); None: each row draws its own noise.
     """
 
     def __init__(self, sampler: AutoregressiveSampler, net: TokenWorldModel, context: torch.Tensor,
                  cond: StepConditions, uncond: StepConditions | None = None,
                  guidance: ClassifierFreeGuidance | None = None, generator: torch.Generator | None = None,
-                 given: tuple[str, ...] = ()):
+                 given: tuple[str, ...] = (), noise_groups: torch.Tensor | None = None):
         if (guidance is None) != (uncond is None):
             raise ValueError("classifier-free guidance needs both `guidance` and `uncond` (or neither)")
         if cond.text.shape[1] < context.shape[1]:
@@ -195,6 +239,7 @@ class SamplingSession:
         self.dropped_steps = 0
         self.stream: WindowStream | None = None
         self.given = tuple(given)
+        self.noise_groups = None if noise_groups is None else check_groups(noise_groups, context)
 
     @property
     def known_steps(self) -> int:
@@ -233,10 +278,16 @@ class SamplingSession:
             if self.guidance is not None:
                 cond_logits, uncond_logits = logits.chunk(2)
                 logits = self.guidance(cond_logits, uncond_logits, scales[i].item())
-            tokens[:, t, i] = self.sampler.picker(logits, self.generator)
+            tokens[:, t, i] = self.sampler.picker(logits, self.generator, self.gumbel(logits.shape[-1]))
             x = self.embed_step(tokens, t)[:, net.m + i : net.m + i + 1]
         self.tokens = tokens
         return tokens[:, t]
+
+    def gumbel(self, vocabulary: int) -> torch.Tensor | None:
+        """The next token's shared noise (b, V), or None when every row draws its own."""
+        if self.noise_groups is None:
+            return None
+        return shared_gumbel(self.noise_groups, vocabulary, self.generator)
 
     def forget(self, count: int) -> None:
         """Drop the `count` oldest steps: from the KV cache with relative time, else the window is re-prefilled."""

@@ -204,14 +204,17 @@ class Gaia1Pipeline:
     @torch.no_grad()
     def sample_batch(self, context: torch.Tensor, frames: int, text: torch.Tensor | None = None,
                      actions: torch.Tensor | None = None, negative: torch.Tensor | None = None, num_futures: int = 1,
-                     generator: torch.Generator | None = None, lead: int = 0) -> tuple[torch.Tensor, Conditions]:
+                     generator: torch.Generator | None = None, lead: int = 0,
+                     noise_groups: torch.Tensor | None = None) -> tuple[torch.Tensor, Conditions]:
         """b contexts at once: tokens (b, t0, h, w); text, negative (b, lead + t, m, e) encoded; actions
         (b, lead + t, 2) → tokens (b·k, t, h, w), each context's futures adjacent, and their conditions (t steps).
-        lead: steps of the streams before the context that only inform the conditions (WorldModelRolloutPipeline)."""
+        lead: steps of the streams before the context that only inform the conditions; noise_groups (b,) int64:
+        rows that share their sampling noise, e.g. one context under several commands (WorldModelRolloutPipeline)."""
         steps = lead + context.shape[1] + frames
         actions = None if actions is None else actions.float().to(self.device)
         flat = rearrange(context, "b t h w -> b t (h w)").to(self.device)
-        out = self.rollouts(flat, frames, text, actions, negative, num_futures, generator, lead)
+        groups = None if noise_groups is None else noise_groups.to(self.device)
+        out = self.rollouts(flat, frames, text, actions, negative, num_futures, generator, lead, groups)
         cond = self.rollouts.conditions(out.tokens.shape[0], steps, *(
             None if x is None else x.repeat_interleave(num_futures, 0) for x in (text, actions))).steps(lead, steps)
         h, w = self.token_grid

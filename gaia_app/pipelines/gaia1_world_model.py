@@ -47,9 +47,12 @@ class WorldModelRolloutPipeline:
     @torch.no_grad()
     def __call__(self, context: torch.Tensor, frames: int, text: torch.Tensor | None = None,
                  actions: torch.Tensor | None = None, negative_text: torch.Tensor | None = None,
-                 num_futures: int = 1, generator: torch.Generator | None = None, lead: int = 0) -> RolloutOutput:
+                 num_futures: int = 1, generator: torch.Generator | None = None, lead: int = 0,
+                 noise_groups: torch.Tensor | None = None) -> RolloutOutput:
         """context (b, t0, n) int64; text, negative_text: (b, lead + t0 + f, m, e) encoder outputs; actions:
-        (b, lead + t0 + f, 2).
+        (b, lead + t0 + f, 2). noise_groups (b,) int64: examples with equal values (e.g. one context under several
+        commands) share their sampling noise, future by future (counterfactual futures, ar_sampling.shared_gumbel);
+        None: every future draws its own.
 
         Several futures per example are sampled in one batch (`num_futures`). The first `lead` steps of the streams
         precede the context and only inform the conditions (with action deltas, the change of the context's first
@@ -58,7 +61,8 @@ class WorldModelRolloutPipeline:
         steps = lead + context.shape[1] + frames
         context, text, actions, negative_text = (repeat_futures(x, num_futures) for x in (context, text, actions, negative_text))
         cond, uncond = self.streams(context.shape[0], steps, text, actions, negative_text, lead)
-        tokens = self.sampler(self.net, context, cond, uncond, frames, self.rollout_guidance(text), generator)
+        groups = None if noise_groups is None else future_groups(noise_groups, num_futures)
+        tokens = self.sampler(self.net, context, cond, uncond, frames, self.rollout_guidance(text), generator, groups)
         return RolloutOutput(tokens, context.shape[1])
 
     def streams(self, batch: int, steps: int, text: torch.Tensor | None, actions: torch.Tensor | None,
@@ -106,6 +110,12 @@ class WorldModelRolloutPipeline:
             raise ValueError(f"the session was opened with streams {session.given}; these steps bring {given}")
         session.extend(*self.streams(session.tokens.shape[0], actions.shape[1], text, actions, negative_text, lead,
                                      guided=session.guidance is not None))
+
+
+def future_groups(groups: torch.Tensor, futures: int) -> torch.Tensor:
+    """Noise groups (b,) of examples → (b·futures,) of their futures: the k-th futures of one group share noise,
+    the futures of one example do not."""
+    return groups.repeat_interleave(futures) * futures + torch.arange(futures, device=groups.device).repeat(len(groups))
 
 
 def given_streams(text: torch.Tensor | None, actions: torch.Tensor | None,

@@ -11,7 +11,9 @@ one run:
    ceiling   = the same scenes re-simulated by the synthetic world with the commanded actions;
    tokenized = the ceiling's frames encoded and decoded by the tokenizer: the best a world model over these
                tokens can show (a diagnostic; targets use the ceiling);
-   model     = mode=action rollouts with those commands;
+   model     = mode=action rollouts with those commands; with `controllability.shared_noise` the futures of one
+               context share their sampling noise across commands (counterfactual futures, as the ceiling's
+               re-simulations share their world), so their difference is the commands' and not sampling luck;
    floor     = mode=video rollouts (no actions) scored against the same commands;
    reference = the real continuation under the clip's own policy, scored against the same commands: what a
                perfect model that ignored the commands would score. It checks the probes without any model:
@@ -176,14 +178,16 @@ def probes_for(cfg: DictConfig, pipeline: Gaia1Pipeline, frames: int, run_dir: P
 
 
 def rollout_frames(pipeline: Gaia1Pipeline, context: torch.Tensor | None, frames: int, batch: int,
-                   text: torch.Tensor | None, actions: torch.Tensor | None, generator: torch.Generator) -> torch.Tensor:
-    """Rollouts of `batch` sequences (contexts (b, t0, 3, H, W) or none) → their frames (b, t, 3, H, W) at the world rate."""
+                   text: torch.Tensor | None, actions: torch.Tensor | None, generator: torch.Generator,
+                   noise_groups: torch.Tensor | None = None) -> torch.Tensor:
+    """Rollouts of `batch` sequences (contexts (b, t0, 3, H, W) or none) → their frames (b, t, 3, H, W) at the world
+    rate. noise_groups (b,) int64: sequences that share their sampling noise (None: each its own)."""
     h, w = pipeline.token_grid
     if context is None:
         tokens = torch.zeros(batch, 0, h, w, dtype=torch.long)
     else:
         tokens = torch.stack([pipeline.encode(c) for c in context])
-    sampled, _ = pipeline.sample_batch(tokens, frames, text, actions, None, 1, generator)
+    sampled, _ = pipeline.sample_batch(tokens, frames, text, actions, None, 1, generator, noise_groups=noise_groups)
     return pipeline.render(sampled, generator)[0]
 
 
@@ -274,7 +278,8 @@ def action_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: tor
     videos = {
         "ceiling": ceiling,
         "tokenized": tokenized(pipeline, ceiling, real_tokens),
-        "model": rollout_frames(pipeline, repeat(contexts.frames[:, :t0]), frames, len(commanded), None, commanded, generator),
+        "model": rollout_frames(pipeline, repeat(contexts.frames[:, :t0]), frames, len(commanded), None, commanded,
+                                generator, context_groups(len(commands), n) if c.shared_noise else None),
         "floor": repeat(rollout_frames(pipeline, contexts.frames[:, :t0], frames, n, None, None, generator)),
         "reference": repeat(contexts.frames),
     }
@@ -285,6 +290,11 @@ def action_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: tor
                                             commanded.unflatten(0, per_command), t0, pairs)
     return {"commands": [list(cmd) for cmd in commands], "contexts": n, "scored_steps": frames - 1, "rows": rows,
             "contrasts": contrasted, "checks": action_checks(rows), "discrimination": discrimination}
+
+
+def context_groups(commands: int, contexts: int) -> torch.Tensor:
+    """Noise groups (C·N,) of a command-major batch: the futures of one context share their noise."""
+    return torch.arange(contexts).repeat(commands)
 
 
 def action_checks(rows: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:

@@ -76,7 +76,8 @@ def command_panel(cfg: DictConfig, pipeline: Gaia1Pipeline, generator: torch.Gen
     commands = [tuple(c) for c in cfg.showcase.commands]
     actions = commanded_actions(clip, t0, frames, rate, commands)  # (C, t, 2)
     context = clip.frames[:, :t0].repeat(len(commands), 1, 1, 1, 1)
-    futures = rollout_frames(pipeline, context, frames, len(commands), None, actions, generator)
+    shared = torch.zeros(len(commands), dtype=torch.long) if cfg.showcase.shared_noise else None  # one context
+    futures = rollout_frames(pipeline, context, frames, len(commands), None, actions, generator, shared)
     through = pipeline.render(pipeline.encode(clip.frames[0])[None], generator)[0]
     return {"real": torch.cat([clip.frames, through]), "futures": futures, "actions": actions, "context": t0,
             "names": REAL_ROWS + [f"{speed} / {curvature}" for speed, curvature in commands]}
