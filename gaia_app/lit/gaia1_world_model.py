@@ -34,9 +34,9 @@ class WorldModelModule(GaiaModule):
     Args:
         net, optim, sched: see GaiaModule (§4.2: AdamW 1e-4, wd 0.1, betas 0.9/0.95; warm-up, cosine ÷10).
         text_encoder: factory of the text encoder (captions → (b, t, m, e)), or None (text never given).
-        init_from: world-model training checkpoint whose weights (net and text encoder, same preset) start a fresh
-            fit: a fine-tune on other data with its own optimiser and schedule. A resumed run (ckpt_path) keeps its
-            own weights.
+        init_from: world-model training checkpoint, or a weights folder with world_model.safetensors (e.g. "gaia1",
+            the shipped one), whose weights (net and text encoder, same preset) start a fresh fit: a fine-tune on
+            other data with its own optimiser and schedule. A resumed run (ckpt_path) keeps its own weights.
     """
 
     def __init__(self, net: Callable[[], WorldModel], optim: Callable, sched: Callable | None = None,
@@ -64,11 +64,11 @@ class WorldModelModule(GaiaModule):
     def load_init_weights(self) -> None:
         """Copy the world model (and text encoder) weights of `init_from` in place (optimiser state stays bound)."""
         what = "a GAIA-1 world-model training checkpoint of the same preset"
-        load_net_weights(self.world_model, self.init_from, what)
+        load_net_weights(self.world_model, self.init_from, what, component="world_model")
         # pretrained encoders (MiniLM, T5, CLIP) keep their frozen weights outside the module, read from their own
         # files; only a learned encoder has weights in the checkpoint
         if self.text_encoder is not None and any(p.numel() for p in self.text_encoder.parameters()):
-            load_net_weights(self.text_encoder, self.init_from, what, prefix="text_encoder.")
+            load_net_weights(self.text_encoder, self.init_from, what, prefix="text_encoder.", component="world_model")
 
     def encode_text(self, batch: dict[str, Any]) -> torch.Tensor | None:
         """(b, t, m, e) text embeddings of the batch's captions; None without captions or without an encoder."""

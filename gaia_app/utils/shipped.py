@@ -100,9 +100,11 @@ def export_component(checkpoint: Mapping[str, Any], folder: str | Path, componen
 
 
 def stored(value: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """Floating tensors in the storage type, others (integer buffers) as they are; contiguous, detached."""
+    """Floating tensors in the storage type, others (integer buffers) as they are; contiguous, detached, and a copy
+    of their own: tied weights (a token embedding shared with the head) would otherwise share memory, which
+    safetensors refuses to write (float16 storage made the copy by itself, float32 did not)."""
     value = value.detach().cpu()
-    return (value.to(dtype) if value.is_floating_point() else value).contiguous()
+    return (value.to(dtype) if value.is_floating_point() else value).contiguous().clone()
 
 
 def read_config(path: Path) -> dict[str, Any]:

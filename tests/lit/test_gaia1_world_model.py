@@ -132,3 +132,27 @@ def test_init_from_starts_a_fresh_fit_from_a_checkpoints_weights(token_cache: Pa
                          tmp_path / "bad")
     with pytest.raises(FileNotFoundError, match="model.init_from=.*nope.ckpt"):
         train(bad)
+
+
+def test_init_from_a_weights_folder_starts_from_its_world_model(token_cache: Path, tmp_path: Path) -> None:
+    """model.init_from=<weights folder> (e.g. the shipped gaia1) fine-tunes from world_model.safetensors, with no
+    training checkpoint; a folder without that component is named."""
+    from gaia_app.lit.checkpoint import load_module
+    from gaia_app.utils.checkpoint_io import read_checkpoint
+    from gaia_app.utils.shipped import export_component
+
+    overrides = ["experiment=gaia1/world_model_tiny", "trainer=tiny", "logger=csv", "extras.print_config=false",
+                 "trainer.limit_val_batches=1", f"data.path={token_cache}", "data.frame_stride=1",
+                 "model.net.vocab_size=16", "model.net.image_tokens=12", "model.net.dim=32", "model.net.depth=1",
+                 "model.net.heads=2", "model.net.kv_heads=1", "trainer.val_check_interval=2", "trainer.max_steps=2"]
+    train(compose_config("train", overrides, tmp_path / "first"))
+    parent = tmp_path / "first" / "checkpoints" / "last.ckpt"
+    export_component(read_checkpoint(parent), tmp_path / "weights", "world_model", ["net", "text_encoder"],
+                     {"rate": 6.25}, "float32")  # as mode=export writes it, in float32 to compare exactly
+    child = train(compose_config("train", [*overrides, "model.optim.lr=1e-12", f"model.init_from={tmp_path / 'weights'}"],
+                                 tmp_path / "child"))
+    for name, value in load_module(parent).state_dict().items():  # net and learned text encoder
+        torch.testing.assert_close(child["model"].state_dict()[name], value, msg=name)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="world_model"):
+        train(compose_config("train", [*overrides, f"model.init_from={tmp_path / 'empty'}"], tmp_path / "bad"))
