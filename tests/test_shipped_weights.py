@@ -129,9 +129,13 @@ def test_reproduce_lists_every_step_of_the_recipe(capsys) -> None:
 
     main(["--dry-run", "--out", "outputs/reference"])
     commands = capsys.readouterr().out.strip().splitlines()
-    assert [c.split()[1] for c in commands] == ["train.py", "generate.py", "train.py", "-m", "benchmarks/probe_quality.py",
-                                                "generate.py", "train.py", "generate.py"]
+    assert [c.split()[1] for c in commands] == ["train.py", "generate.py", "train.py", "generate.py", "train.py", "-m",
+                                                "benchmarks/probe_quality.py", "generate.py", "train.py", "generate.py"]
     assert "experiment=gaia1/reference/tokenizer" in commands[0] and "experiment=gaia1/reference/world_model" in commands[2]
+    assert "data.source.driven_share=1.0" in commands[3] and "seed=5" in commands[3]
+    assert "experiment=gaia1/reference/world_model_finetune" in commands[4]
+    assert "model.init_from=outputs/reference/world_model/checkpoints/last.ckpt" in commands[4]
+    assert all("world_model_ckpt=outputs/reference/world_model_finetune/" in c for c in (commands[7], commands[-1]))
     assert "mode=export" in commands[-1] and "out_dir=gaia_app/weights/gaia1" in commands[-1]
     assert "experiment=gaia1/reference/video_decoder" in commands[-2] and "decoder_ckpt=" in commands[-1]
 
@@ -155,7 +159,7 @@ def test_reproduce_until_stops_after_the_step_and_resumes_past_recorded_steps(tm
     reproduce.main(["--out", str(out), "--weights", str(tmp_path / "weights"), "--until", "cross_entropy"])
     assert ran[-1] == "cross_entropy" and "probes" not in ran
     assert [r["step"] for r in json.loads((out / "reproduce.json").read_text())] == [
-        "tokenizer", "tokenize", "world_model", "cross_entropy", "probes"]
+        "tokenizer", "tokenize", "world_model", "tokenize_finetune", "world_model_finetune", "cross_entropy", "probes"]
 
 
 def test_showcase_steers_one_context_four_ways_and_prompts_against_none(shipped: Path, tmp_path: Path) -> None:

@@ -8,6 +8,9 @@ Steps, each a train.py / generate.py command that resumes or skips finished work
   tokenize         generate.py mode=tokenize: 1024 synthetic clips of 3.2 s, half of them leaving their policy for
                    a random open-loop command, tokenized at 6.25 Hz (+ 128 clips of the held-out val world)
   world_model      train.py experiment=gaia1/reference/world_model
+  tokenize_finetune  generate.py mode=tokenize: 1024 more clips (world seed 5), every one leaving its policy for an
+                   open-loop command, a tenth of them at night (+ 128 held-out clips of that mix)
+  world_model_finetune  train.py experiment=gaia1/reference/world_model_finetune from the world_model step's weights
   cross_entropy    validation cross-entropy per conditioning mode vs the copy-previous-frame and unigram baselines
   probes           benchmarks/probe_quality.py: controllability probes for the recipe's size and protocol, and
                    their model-free check (ceiling vs reference, scene accuracy on real frames)
@@ -25,6 +28,7 @@ import argparse
 import json
 import os
 import platform
+import shlex
 import subprocess
 import sys
 import time
@@ -49,11 +53,16 @@ PROBES = ["--context-frames=4", "--seconds=1.25", "--probe-clips=768", "--probe-
 TOKENS = ["data=synthetic", "data.source.num_clips=1024", "data.val_source.num_clips=128", "data.source.fps=6.25",
           "data.source.clip_len=20", "data.source.driven_share=0.5", "data.source.open_loop_acceleration=[-5,5]",
           "fps=6.25"]
+# the fine-tune's clips (conf/experiment/gaia1/reference/world_model_finetune.yaml says why): every clip driven, a
+# tenth at night, another world seed
+FINETUNE_TOKENS = [*(t for t in TOKENS if not t.startswith("data.source.driven_share")), "data.source.driven_share=1.0",
+                   "data.source.time_of_day_mix={day:0.7,dusk:0.2,night:0.1}", "seed=5"]
 
 
 def steps(out: Path, weights: Path) -> list[tuple[str, list[str]]]:
     """(name, argv) of every step, in order."""
-    tokenizer, world_model = out / "tokenizer/checkpoints/last.ckpt", out / "world_model/checkpoints/last.ckpt"
+    tokenizer, pretrained = out / "tokenizer/checkpoints/last.ckpt", out / "world_model/checkpoints/last.ckpt"
+    world_model = out / "world_model_finetune/checkpoints/last.ckpt"
     ckpts = [f"tokenizer_ckpt={tokenizer}", f"world_model_ckpt={world_model}"]
     decoder = out / "video_decoder/checkpoints/last.ckpt"
     probes = out / "probes/probes"
@@ -65,8 +74,13 @@ def steps(out: Path, weights: Path) -> list[tuple[str, list[str]]]:
                       f"hydra.run.dir={out / 'tokenize'}"]),
         ("world_model", [py, "train.py", "experiment=gaia1/reference/world_model", f"data.path={out / 'tokens/train'}",
                          f"hydra.run.dir={out / 'world_model'}", "ckpt_path=last"]),
+        ("tokenize_finetune", [py, "generate.py", "mode=tokenize", f"ckpt={tokenizer}", *FINETUNE_TOKENS,
+                               f"out_dir={out / 'tokens_finetune'}", f"hydra.run.dir={out / 'tokenize_finetune'}"]),
+        ("world_model_finetune", [py, "train.py", "experiment=gaia1/reference/world_model_finetune",
+                                  f"data.path={out / 'tokens_finetune/train'}", f"model.init_from={pretrained}",
+                                  f"hydra.run.dir={out / 'world_model_finetune'}", "ckpt_path=last"]),
         ("cross_entropy", [py, "-m", "gaia_app.tasks.world_model_report", f"--ckpt={world_model}",
-                           f"--tokens={out / 'tokens'}", f"--out={out / 'cross_entropy'}"]),
+                           f"--tokens={out / 'tokens_finetune'}", f"--out={out / 'cross_entropy'}"]),
         ("probes", [py, "benchmarks/probe_quality.py", f"--out={out / 'probes'}", *PROBES]),
         ("controllability", [py, "generate.py", "mode=controllability", *ckpts, *PROTOCOL, f"controllability.probes={probes}",
                              f"hydra.run.dir={out / 'controllability'}"]),
@@ -93,8 +107,9 @@ def machine() -> str:
 
 
 def shown(argv: list[str]) -> str:
-    """The command as a user would type it (python, not the interpreter's path)."""
-    return " ".join(["python", *argv[1:]])
+    """The command as a user would type it (python, not the interpreter's path), quoted for a POSIX shell (braces
+    and brackets of Hydra overrides would otherwise expand)."""
+    return " ".join(["python", *map(shlex.quote, argv[1:])])
 
 
 def manifest(records: list[dict], out: Path, weights: Path) -> str:
