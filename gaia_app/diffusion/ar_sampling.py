@@ -98,7 +98,6 @@ class TokenPicker:
             return nucleus_sample(logits, self.p, generator)
         return torch.multinomial(logits.softmax(-1), 1, generator=generator).squeeze(-1)
 
-
     def allowed(self, logits: torch.Tensor) -> torch.Tensor:
         """(b, V) tempered logits → the same with every token this picker cannot choose at −inf."""
         if self.mode == "sample":
