@@ -112,14 +112,16 @@ class TokenPicker:
         return logits.masked_fill(~keep, -math.inf)
 
 
-def shared_gumbel(groups: torch.Tensor, vocabulary: int, generator: torch.Generator | None = None) -> torch.Tensor:
+def shared_gumbel(groups: torch.Tensor, vocabulary: int, generator: torch.Generator | None = None,
+                  count: int | None = None) -> torch.Tensor:
     """Standard Gumbel noise (b, V), one draw per group: rows with equal `groups` (b,) int64 get the same noise.
 
     Counterfactual sampling (Gumbel-max coupling, Oberst & Sontag 2019): futures of one context under different
     commands share every draw, so where the command does not change the logits they pick the same tokens, and
     their differences come from the commands rather than from sampling luck, as re-simulated real futures share
-    their world's randomness. Each future's own distribution is unchanged."""
-    count = int(groups.max()) + 1
+    their world's randomness. Each future's own distribution is unchanged. count: the number of groups (more than
+    the largest group index), when the caller knows it (saves a device sync per token)."""
+    count = int(groups.max()) + 1 if count is None else count
     exponential = torch.empty(count, vocabulary, device=groups.device).exponential_(generator=generator)
     return -exponential.clamp_min(torch.finfo(torch.float32).tiny).log()[groups]
 
@@ -239,6 +241,7 @@ class SamplingSession:
         self.stream: WindowStream | None = None
         self.given = tuple(given)
         self.noise_groups = None if noise_groups is None else check_groups(noise_groups, context)
+        self.noise_count = None if noise_groups is None else int(noise_groups.max()) + 1
 
     @property
     def known_steps(self) -> int:
@@ -286,7 +289,7 @@ class SamplingSession:
         """The next token's shared noise (b, V), or None when every row draws its own."""
         if self.noise_groups is None:
             return None
-        return shared_gumbel(self.noise_groups, vocabulary, self.generator)
+        return shared_gumbel(self.noise_groups, vocabulary, self.generator, self.noise_count)
 
     def forget(self, count: int) -> None:
         """Drop the `count` oldest steps: from the KV cache with relative time, else the window is re-prefilled."""
