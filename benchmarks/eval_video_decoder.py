@@ -2,6 +2,8 @@
 
     python train.py experiment=gaia1/reference/video_decoder hydra.run.dir=outputs/reference/video_decoder
     python benchmarks/eval_video_decoder.py --ckpt outputs/reference/video_decoder/checkpoints/last.ckpt
+    python benchmarks/eval_video_decoder.py --weights gaia1 --world-seed 31337 --clips 16 --rows-only \
+        --samplers mean16,amean8 --out outputs/decoder_draws      # the shipped decoder (float16 weights)
 
 Decodes the ground-truth tokens of held-out clips (N frames at 6.25 Hz, the validation seed) side by side:
   framewise   the tokenizer's own image decoder, one frame at a time: the rendered tokens alone, what the video
@@ -10,12 +12,13 @@ Decodes the ground-truth tokens of held-out clips (N frames at 6.25 Hz, the vali
               (default 1, 5, 10, 20, 50; DDIM 1 is the decoder's one-step x̂₀ from pure noise)
   zero        the one-step x̂₀ from x_T = 0 instead of noise (an input the decoder never saw in training)
   mean<k>     the conditional-mean estimate: one-step x̂₀ averaged over k noise draws (OneStepMeanSampler)
+  amean<k>    the same over k/2 antithetic pairs of draws (x_T, −x_T), if asked
   dpm<k>      DPM-Solver++(2M) with k steps, if asked (--samplers)
 and reports, per row, PSNR against the true frames and temporal flicker (mean |Δdecoded − Δtrue| of consecutive
 frames, gaia_app.eval.metrics.temporal_flicker; lower is steadier), each a mean over clips with a 95 % interval,
 and the paired difference to framewise with its interval. Then the temporal upsampling 6.25 → 12.5 → 25 Hz against
 the true 25 Hz frames, and the 25 Hz decoding path's frames/s at the tiny (trained) and a mid size (random weights,
-same cost). Writes results.json, results.md, steps.png (PSNR and flicker against steps), a PNG strip
+same cost; --rows-only skips these two). Writes results.json, results.md, steps.png (PSNR and flicker against steps), a PNG strip
 (true | framewise | decoder) and an .rrd into --out.
 """
 
@@ -25,6 +28,7 @@ import argparse
 import copy
 import json
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -39,15 +43,44 @@ from gaia_app.data.synthetic import SyntheticClipDataset
 from gaia_app.diffusion.samplers import DDIMSampler, DPMSolverSampler, OneStepMeanSampler
 from gaia_app.eval.metrics import psnr, temporal_flicker
 from gaia_app.lit.checkpoint import load_module
+from gaia_app.lit.gaia1_video_decoder import VideoDecoderModule
 from gaia_app.models.gaia1.video_decoder import VideoDecoder
 from gaia_app.pipelines.gaia1_video_decoder import VideoDecodingPipeline
 from gaia_app.utils.run_dir import atomic_path, atomic_write_text
 from gaia_app.viz.media import to_hwc_uint8
 
 # rows: ddim<k> (k DDIM steps), dpm<k> (DPM-Solver++ k steps), mean<k> (OneStepMeanSampler, k noise draws),
-# zero (x̂0 from x_T = 0, one evaluation)
-SAMPLERS = {"ddim": DDIMSampler, "dpm": DPMSolverSampler, "mean": OneStepMeanSampler}
+# amean<k> (k/2 antithetic pairs), zero (x̂0 from x_T = 0, one evaluation)
+SAMPLERS = {"ddim": DDIMSampler, "dpm": DPMSolverSampler, "mean": OneStepMeanSampler,
+            "amean": partial(OneStepMeanSampler, antithetic=True)}
 DEFAULT_SAMPLERS = "ddim1,ddim5,ddim10,ddim20,ddim50,zero,mean4,mean16"
+
+
+class ShippedDecoder:
+    """What this benchmark reads of a VideoDecoderModule (EMA decoder, schedule, window, tokenize, render_tokens),
+    from a shipped weights folder (--weights): the decoder and tokenizer exactly as they ship."""
+
+    def __init__(self, folder: str, device: str):
+        from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule
+        from gaia_app.utils.shipped import load_nets, shipped_folder
+
+        folder = shipped_folder(folder)
+        tokenizer, tokenizer_info = load_nets(folder, "tokenizer", device)
+        decoder, info = load_nets(folder, "video_decoder", device)
+        self.tokenizer, self.ema_decoder = tokenizer["net"], decoder["net"]
+        self.schedule = CosineNoiseSchedule(int(info["timesteps"]))
+        self.frames, self.context_frames = int(info["frames"]), int(info["context_frames"])
+        self.image_size = tuple(tokenizer_info["image_size"])
+
+    # VideoDecoderModule's own methods: they read nothing but `self.tokenizer`
+    tokenize = VideoDecoderModule.tokenize
+    render_tokens = VideoDecoderModule.render_tokens
+
+    def data_config(self, world_seed: int):
+        """The held-out clips' source: the synthetic world `world_seed` at the tokenizer's image size, one camera."""
+        height, width = self.image_size
+        return OmegaConf.create({"data": {"val_source": {"seed": world_seed, "height": height, "width": width,
+                                                          "cameras": ["front"]}}})
 
 
 def held_out_clips(run_cfg, clips: int, frames: int, seed: int | None = None) -> torch.Tensor:
@@ -195,13 +228,51 @@ def sampler_for(name: str, schedule):
         return MeanStart(schedule)
     kind, count = name.rstrip("0123456789"), name[len(name.rstrip("0123456789")):]
     if kind not in SAMPLERS or not count:
-        raise ValueError(f"--samplers: unknown row {name!r}; expected ddim<k>, dpm<k>, mean<k> or zero")
-    return SAMPLERS[kind](schedule, draws=int(count)) if kind == "mean" else SAMPLERS[kind](schedule, steps=int(count))
+        raise ValueError(f"--samplers: unknown row {name!r}; expected ddim<k>, dpm<k>, mean<k>, amean<k> or zero")
+    return SAMPLERS[kind](schedule, draws=int(count)) if kind.endswith("mean") else SAMPLERS[kind](schedule, steps=int(count))
+
+
+def upsampling_scores(module, tokens: torch.Tensor, full: torch.Tensor, sampler: str, seed: int) -> dict:
+    """PSNR (all 25 Hz frames, interpolated ones only) and flicker of the 6.25 → 12.5 → 25 Hz path against the true
+    25 Hz clips `full` (b, 4·(N − 1) + 1, 3, H, W), decoding the tokens (b, N, h, w) with the row `sampler`."""
+    net, schedule = module.ema_decoder, module.schedule
+    pipe = VideoDecodingPipeline(net, schedule, sampler_for(sampler, schedule), module.frames, module.context_frames,
+                                 render_tokens=module.render_tokens)
+    up = pipe(tokens, upsample=2, generator=torch.Generator().manual_seed(seed))
+    quadruple = up.quadruple.cpu()
+    inserted = torch.ones(quadruple.shape[1], dtype=torch.bool)
+    inserted[::4] = False
+    return {"sampler": sampler, "frames": [up.base.shape[1], up.double.shape[1], quadruple.shape[1]],
+            "psnr_25hz_all": scores(quadruple, full)["psnr"],
+            "psnr_25hz_interpolated_only": scores(quadruple[:, inserted], full[:, inserted])["psnr"],
+            "flicker_25hz": scores(quadruple, full)["flicker"]}
+
+
+def speed_section(module, one_clip: torch.Tensor, sampler: str, device: str) -> dict:
+    """Denoiser steps/s and 25 Hz frames/s of the trained decoder and of a mid-size one (random weights, same cost)."""
+    net, schedule = module.ema_decoder, module.schedule
+    mid = VideoDecoder(vocab_size=net.vocab_size, token_grid=net.token_grid, image_size=net.image_size, frames=module.frames,
+                       channels=64, channel_mults=(1, 2, 4), res_blocks=2, attention_levels=(2,),
+                       render_tokens=net.render_tokens, residual=net.residual,
+                       residual_scale=net.residual_scale).to(device).eval()
+    return {
+        "tiny_params": sum(p.numel() for p in net.parameters()),
+        "mid_params": sum(p.numel() for p in mid.parameters()),
+        "denoiser_steps_per_s": {"tiny": denoiser_steps_per_second(net, module.frames),
+                                 "mid": denoiser_steps_per_second(mid, module.frames)},
+        "frames_25hz_per_s": {size: frames_per_second(VideoDecodingPipeline(
+            model, schedule, sampler_for(sampler, schedule), module.frames, module.context_frames,
+            render_tokens=module.render_tokens), one_clip) for size, model in (("tiny", net), ("mid", mid))},
+        "threads": torch.get_num_threads(),
+        "device": str(device),
+    }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--ckpt", required=True)
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--ckpt", help="a video decoder training checkpoint (EMA weights)")
+    source.add_argument("--weights", help="a shipped weights folder (gaia1 or a path; needs --world-seed, --out)")
     parser.add_argument("--clips", type=int, default=8)
     parser.add_argument("--frames", type=int, default=12, help="N frames at 6.25 Hz (12: two decoder windows)")
     parser.add_argument("--out", default=None, help="default: <run dir>/eval")
@@ -210,12 +281,19 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu", help="cpu or cuda (frames/s on a GPU)")
     parser.add_argument("--world-seed", type=int, default=None, help="clips of this world instead of the validation one")
+    parser.add_argument("--rows-only", action="store_true", help="skip the 25 Hz upsampling and the speed section")
     args = parser.parse_args()
+    if args.weights and (args.world_seed is None or args.out is None):
+        parser.error("--weights needs --world-seed (shipped weights carry no validation world) and --out")
     torch.manual_seed(args.seed)
-    module = load_module(args.ckpt).eval().to(args.device)
-    run_dir = Path(args.ckpt).parents[1]
-    out = Path(args.out or run_dir / "eval")
-    run_cfg = OmegaConf.load(run_dir / "config_resolved.yaml")
+    if args.weights:
+        module = ShippedDecoder(args.weights, args.device)
+        out, run_cfg = Path(args.out), module.data_config(args.world_seed)
+    else:
+        module = load_module(args.ckpt).eval().to(args.device)
+        run_dir = Path(args.ckpt).parents[1]
+        out = Path(args.out or run_dir / "eval")
+        run_cfg = OmegaConf.load(run_dir / "config_resolved.yaml")
     net, schedule = module.ema_decoder.eval(), module.schedule
 
     full = held_out_clips(run_cfg, args.clips, args.frames, args.world_seed)  # 25 Hz, on the CPU (metrics there)
@@ -234,35 +312,9 @@ def main() -> None:
         results["samplers"][name] = {**scores(decoded[name], truth, baseline), "seconds": time.perf_counter() - start}
         print(name, json.dumps(results["samplers"][name]), flush=True)
     best = decoded.get("ddim50", next(iter(decoded.values())))
-    pipe = VideoDecodingPipeline(net, schedule, sampler_for(args.upsample_sampler, schedule), module.frames,
-                                 module.context_frames, render_tokens=module.render_tokens)
-    up = pipe(tokens, upsample=2, generator=torch.Generator().manual_seed(args.seed))
-    up.quadruple = up.quadruple.cpu()
-    inserted = torch.ones(up.quadruple.shape[1], dtype=torch.bool)
-    inserted[::4] = False
-    results["upsampling"] = {
-        "sampler": args.upsample_sampler,
-        "frames": [up.base.shape[1], up.double.shape[1], up.quadruple.shape[1]],
-        "psnr_25hz_all": scores(up.quadruple, full)["psnr"],
-        "psnr_25hz_interpolated_only": scores(up.quadruple[:, inserted], full[:, inserted])["psnr"],
-        "flicker_25hz": scores(up.quadruple, full)["flicker"],
-    }
-    mid = VideoDecoder(vocab_size=net.vocab_size, token_grid=net.token_grid, image_size=net.image_size, frames=module.frames,
-                       channels=64, channel_mults=(1, 2, 4), res_blocks=2, attention_levels=(2,),
-                       render_tokens=net.render_tokens, residual=net.residual,
-                       residual_scale=net.residual_scale).to(args.device)
-    one_clip = tokens[:1]
-    results["speed"] = {
-        "tiny_params": sum(p.numel() for p in net.parameters()),
-        "mid_params": sum(p.numel() for p in mid.parameters()),
-        "denoiser_steps_per_s": {"tiny": denoiser_steps_per_second(net, module.frames),
-                                 "mid": denoiser_steps_per_second(mid.eval(), module.frames)},
-        "frames_25hz_per_s": {size: frames_per_second(VideoDecodingPipeline(
-            model, schedule, sampler_for(args.upsample_sampler, schedule), module.frames, module.context_frames,
-            render_tokens=module.render_tokens), one_clip) for size, model in (("tiny", net), ("mid", mid.eval()))},
-        "threads": torch.get_num_threads(),
-        "device": str(args.device),
-    }
+    if not args.rows_only:
+        results["upsampling"] = upsampling_scores(module, tokens, full, args.upsample_sampler, args.seed)
+        results["speed"] = speed_section(module, tokens[:1], args.upsample_sampler, args.device)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "results.json", json.dumps(results, indent=2))
     atomic_write_text(out / "results.md", table(results))
@@ -276,7 +328,8 @@ def main() -> None:
             rec.log(f"eval/{name}", rr.Image(to_hwc_uint8(video[0, t])))
     rec.flush()
     print(table(results))
-    print(json.dumps(results["upsampling"], indent=2), json.dumps(results["speed"], indent=2))
+    if not args.rows_only:
+        print(json.dumps(results["upsampling"], indent=2), json.dumps(results["speed"], indent=2))
 
 
 if __name__ == "__main__":

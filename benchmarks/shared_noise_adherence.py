@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 from pathlib import Path
 from typing import Any
@@ -129,9 +128,9 @@ def markdown(result: dict[str, Any]) -> str:
               "|---|---|---|---|---|"]
     for name, entry in result["summary"].items():
         digits = 2 if name.startswith("speed") else 4
-        d = entry.get("shared_minus_independent", {"mean": math.nan, "low": math.nan, "high": math.nan})
         bounds = " | ".join(f"{entry[key]:.{digits}f}" for key in ("ceiling", "floor", "target"))
-        paired = f"{d['mean']:+.{digits}f} [{d['low']:+.{digits}f}, {d['high']:+.{digits}f}]"
+        d = entry.get("shared_minus_independent")
+        paired = f"{d['mean']:+.{digits}f} [{d['low']:+.{digits}f}, {d['high']:+.{digits}f}]" if d else "— (one coupling)"
         lines.append(f"| {name} | {bounds} | {paired} |")
     return "\n".join(lines) + "\n"
 

@@ -276,3 +276,27 @@ def test_one_step_mean_averages_the_noise_out_of_x0() -> None:
     torch.testing.assert_close(exact, mean, atol=1e-4, rtol=0)
     with pytest.raises(ValueError, match="draws ≥ 1"):
         OneStepMeanSampler(SCHEDULE, draws=0)
+
+
+def test_antithetic_mean_cancels_the_error_linear_in_the_noise() -> None:
+    """Pairs (x_T, −x_T): an x̂0 error linear in the noise cancels exactly within each pair, where independent draws
+    only shrink it as 1/√draws; the first draw is still the noise passed in, and pairs need an even count."""
+    mean = torch.linspace(-0.5, 0.5, 64).reshape(1, 64)
+    t = torch.tensor([SCHEDULE.timesteps - 1])
+    alpha, sigma = SCHEDULE.alpha_sigma(t)
+    seen = []
+
+    def noisy(x, step):  # x̂0 = mean + 0.3·x_T
+        return v_from_x0(x, mean + 0.3 * x, alpha, sigma)
+
+    def error(antithetic: bool) -> float:
+        noise = torch.randn(1, 64, generator=torch.Generator().manual_seed(1))
+        sampler = OneStepMeanSampler(SCHEDULE, draws=4, antithetic=antithetic, clip_x0=False)
+        out = sampler(noisy, noise, torch.Generator().manual_seed(2), callback=lambda i, t, x, m: seen.append(x))
+        assert torch.equal(seen[-4], noise)
+        return float((out - mean).pow(2).mean().sqrt())
+
+    assert error(antithetic=True) < 1e-3 < error(antithetic=False)
+    assert torch.equal(seen[1], -seen[0]) and not torch.equal(seen[2], -seen[1])
+    with pytest.raises(ValueError, match="pairs"):
+        OneStepMeanSampler(SCHEDULE, draws=3, antithetic=True)

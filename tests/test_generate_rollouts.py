@@ -366,6 +366,8 @@ def test_decoder_sampler_config_picks_ddim_or_the_one_step_mean(checkpoints, tmp
 
     assert isinstance(sampler(), DDIMSampler) and sampler().steps == 50  # GAIA-1 §5.2
     mean = sampler("decoder_sampler=one_step_mean", "decoder_steps=3")
-    assert isinstance(mean, OneStepMeanSampler) and mean.draws == 3
+    assert isinstance(mean, OneStepMeanSampler) and mean.draws == 3 and not mean.antithetic
+    pairs = sampler("decoder_sampler=antithetic_mean", "decoder_steps=4")
+    assert isinstance(pairs, OneStepMeanSampler) and pairs.draws == 4 and pairs.antithetic
     with pytest.raises(ValueError, match="decoder_sampler: expected one of"):
         sampler("decoder_sampler=euler")

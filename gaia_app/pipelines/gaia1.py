@@ -103,7 +103,8 @@ class Gaia1Pipeline:
         decoder_steps: steps of the decoder run's own sampler (DDIM, §5.2: 50), None for its default.
         decoder_blend: eq. 4 image/video blend of the decoder's steps (§5.2: p = 0.25, w = 0.5), None for none.
         decoder_sampler: "ddim" (the decoder run's own sampler, DDIM in every preset; also for None) or
-            "one_step_mean" (the conditional mean over decoder_steps noise draws, the fast option; `make_decoder_sampler`).
+            "one_step_mean" (the conditional mean over decoder_steps noise draws, the fast option; `make_decoder_sampler`)
+            or "antithetic_mean" (that mean over pairs of opposite draws).
         kwargs: the constructor's sampler, guidance, upsample and rate.
         """
         from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
@@ -263,15 +264,16 @@ class Gaia1Pipeline:
         return Gaia1Rollout(tokens.cpu(), base, video, self.fps, log_ppl, t0)
 
 
-DECODER_SAMPLERS = ("ddim", "one_step_mean")
+DECODER_SAMPLERS = ("ddim", "one_step_mean", "antithetic_mean")
 
 
 def make_decoder_sampler(kind: str, schedule: CosineNoiseSchedule, steps: int,
                          stored: Callable | None = None) -> Callable:
     """The video decoder's sampler: "ddim" with `steps` steps (the run's stored sampler factory when given, GAIA-1
-    §5.2), or "one_step_mean", the conditional mean over `steps` noise draws (docs/video_decoder.md)."""
-    if kind == "one_step_mean":
-        return OneStepMeanSampler(schedule, draws=steps)
+    §5.2), "one_step_mean", the conditional mean over `steps` noise draws (docs/video_decoder.md), or
+    "antithetic_mean", the same mean over `steps` / 2 pairs of opposite draws (x_T, −x_T)."""
+    if kind in ("one_step_mean", "antithetic_mean"):
+        return OneStepMeanSampler(schedule, draws=steps, antithetic=kind == "antithetic_mean")
     if kind == "ddim":
         return stored(schedule, steps=steps) if stored is not None else DDIMSampler(schedule, steps=steps)
     raise ValueError(f"decoder_sampler: expected one of {DECODER_SAMPLERS}, got {kind!r}")
