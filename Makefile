@@ -83,9 +83,10 @@ demo-train: install
 
 # The GAIA-1 reference recipe from scratch (docs/reference.md): tokenizer, token cache, world model, held-out
 # cross-entropy, controllability with probes, export to gaia_app/weights/gaia1 and gaia_app/weights/MANIFEST.md.
-# Resumable: run it again after an interruption. About 3 hours on 2 CPU cores.
+# Resumable: run it again after an interruption. About 3 hours on 2 CPU cores. GPU=1 adds the GPU fine-tune that made
+# version 5 of the shipped weights (≈ 8 min on one H200; conf/experiment/gaia1/reference/world_model_finetune_gpu.yaml).
 reproduce: install
-	$(PY) -m gaia_app.tasks.reproduce --out outputs/reference --weights gaia_app/weights/gaia1
+	$(PY) -m gaia_app.tasks.reproduce --out outputs/reference --weights gaia_app/weights/gaia1 $(if $(GPU),--gpu)
 
 # one pytest-xdist worker per logical CPU (TEST_WORKERS=0 runs in one process); --dist loadscope keeps each test module
 # on one worker, so module-scoped fixtures (trained tiny models) are built once

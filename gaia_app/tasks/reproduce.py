@@ -1,7 +1,7 @@
 """`make reproduce`: the GAIA-1 reference recipe from scratch, ending in the shipped weights (docs/reference.md).
 
     python -m gaia_app.tasks.reproduce [--out outputs/reference] [--weights gaia_app/weights/gaia1] [--dry-run]
-                                       [--until STEP]
+                                       [--until STEP] [--gpu]
 
 Steps, each a train.py / generate.py command that resumes or skips finished work when run again:
   tokenizer        train.py experiment=gaia1/reference/tokenizer
@@ -11,6 +11,11 @@ Steps, each a train.py / generate.py command that resumes or skips finished work
   tokenize_finetune  generate.py mode=tokenize: 1024 more clips (world seed 5), every one leaving its policy for an
                    open-loop command, a tenth of them at night (+ 128 held-out clips of that mix)
   world_model_finetune  train.py experiment=gaia1/reference/world_model_finetune from the world_model step's weights
+  --gpu only (`make reproduce GPU=1`; version 5 of the shipped weights came from it, on one H200):
+  tokenize_gpu     generate.py mode=tokenize on the GPU: the fine-tune's 1024 clips (world seed 5) again, into a cache
+  tokenize_gpu_more  and 2366 clips of world seed 6 beside them
+  world_model_gpu  train.py experiment=gaia1/reference/world_model_finetune_gpu from the world_model_finetune
+                   step's weights; the steps below then score and export this world model
   cross_entropy    validation cross-entropy per conditioning mode vs the copy-previous-frame and unigram baselines
   probes           benchmarks/probe_quality.py: controllability probes for the recipe's size and protocol, and
                    their model-free check (ceiling vs reference, scene accuracy on real frames)
@@ -57,12 +62,17 @@ TOKENS = ["data=synthetic", "data.source.num_clips=1024", "data.val_source.num_c
 # tenth at night, another world seed
 FINETUNE_TOKENS = [*(t for t in TOKENS if not t.startswith("data.source.driven_share")), "data.source.driven_share=1.0",
                    "data.source.time_of_day_mix={day:0.7,dusk:0.2,night:0.1}", "seed=5"]
+# the GPU fine-tune's cache (conf/experiment/gaia1/reference/world_model_finetune_gpu.yaml): those clips again and 2366
+# of world seed 6, train split only (its held-out windows come from the cache itself)
+GPU_TOKENS = [*(t for t in FINETUNE_TOKENS if not t.startswith("data.val_source")), "device=cuda", "workers=14",
+              "splits=[train]"]
 
 
-def steps(out: Path, weights: Path) -> list[tuple[str, list[str]]]:
-    """(name, argv) of every step, in order."""
+def steps(out: Path, weights: Path, gpu: bool = False) -> list[tuple[str, list[str]]]:
+    """(name, argv) of every step, in order; `gpu` adds the GPU fine-tune, whose world model the later steps use."""
     tokenizer, pretrained = out / "tokenizer/checkpoints/last.ckpt", out / "world_model/checkpoints/last.ckpt"
-    world_model = out / "world_model_finetune/checkpoints/last.ckpt"
+    finetuned = out / "world_model_finetune/checkpoints/last.ckpt"
+    world_model = out / "world_model_gpu/checkpoints/last.ckpt" if gpu else finetuned
     ckpts = [f"tokenizer_ckpt={tokenizer}", f"world_model_ckpt={world_model}"]
     decoder = out / "video_decoder/checkpoints/last.ckpt"
     probes = out / "probes/probes"
@@ -79,6 +89,7 @@ def steps(out: Path, weights: Path) -> list[tuple[str, list[str]]]:
         ("world_model_finetune", [py, "train.py", "experiment=gaia1/reference/world_model_finetune",
                                   f"data.path={out / 'tokens_finetune/train'}", f"model.init_from={pretrained}",
                                   f"hydra.run.dir={out / 'world_model_finetune'}", "ckpt_path=last"]),
+        *(gpu_steps(out, tokenizer, finetuned) if gpu else []),
         ("cross_entropy", [py, "-m", "gaia_app.tasks.world_model_report", f"--ckpt={world_model}",
                            f"--tokens={out / 'tokens_finetune'}", f"--out={out / 'cross_entropy'}"]),
         ("probes", [py, "benchmarks/probe_quality.py", f"--out={out / 'probes'}", *PROBES]),
@@ -90,6 +101,19 @@ def steps(out: Path, weights: Path) -> list[tuple[str, list[str]]]:
                     f"controllability.probes={probes}",
                     f"out_dir={weights}", f"hydra.run.dir={out / 'export'}"]),
     ]
+
+
+def gpu_steps(out: Path, tokenizer: Path, finetuned: Path) -> list[tuple[str, list[str]]]:
+    """The optional GPU fine-tune: its token cache (two worlds into one folder), then the training run."""
+    py, cache = sys.executable, out / "tokens_gpu"
+    tokenize = [py, "generate.py", "mode=tokenize", f"ckpt={tokenizer}", *GPU_TOKENS, f"out_dir={cache}"]
+    more = [*(t for t in tokenize if not t.startswith(("seed=", "data.source.num_clips="))), "seed=6",
+            "data.source.num_clips=2366"]
+    return [("tokenize_gpu", [*tokenize, f"hydra.run.dir={out / 'tokenize_gpu'}"]),
+            ("tokenize_gpu_more", [*more, f"hydra.run.dir={out / 'tokenize_gpu_more'}"]),
+            ("world_model_gpu", [py, "train.py", "experiment=gaia1/reference/world_model_finetune_gpu",
+                                 f"data.path={cache / 'train'}", f"model.init_from={finetuned}",
+                                 f"hydra.run.dir={out / 'world_model_gpu'}", "ckpt_path=last"])]
 
 
 def commit() -> str:
@@ -148,12 +172,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=Path("outputs/reference"))
     parser.add_argument("--weights", type=Path, default=Path("gaia_app/weights/gaia1"))
     parser.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
-    parser.add_argument("--until", choices=[name for name, _ in steps(Path("."), Path("."))],
+    parser.add_argument("--until", choices=[name for name, _ in steps(Path("."), Path("."), gpu=True)],
                         help="stop after this step (no MANIFEST.md); run again without it to go on")
+    parser.add_argument("--gpu", action="store_true", help="add the GPU fine-tune (needs CUDA) and export its model")
     args = parser.parse_args(argv)
     records_path = args.out / "reproduce.json"
     done = {r["step"]: r for r in json.loads(records_path.read_text())} if records_path.is_file() else {}
-    recipe = steps(args.out, args.weights)
+    recipe = steps(args.out, args.weights, args.gpu)
     in_order = lambda: [done[name] for name, _ in recipe if name in done]  # noqa: E731
     for name, command in recipe:
         if args.dry_run:
