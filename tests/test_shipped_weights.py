@@ -140,18 +140,24 @@ def test_reproduce_lists_every_step_of_the_recipe(capsys) -> None:
     assert "experiment=gaia1/reference/video_decoder" in commands[-2] and "decoder_ckpt=" in commands[-1]
 
 
-def test_reproduce_gpu_adds_the_gpu_fine_tune_whose_model_the_later_steps_use(capsys) -> None:
+def test_reproduce_gpu_adds_the_gpu_and_less_snow_fine_tunes_whose_model_the_later_steps_use(capsys) -> None:
     from gaia_app.tasks.reproduce import main
 
     main(["--dry-run", "--gpu", "--out", "outputs/reference"])
     commands = capsys.readouterr().out.strip().splitlines()
-    assert len(commands) == 13
-    tokenize, more, train = commands[5:8]
+    assert len(commands) == 15
+    tokenize, more, train, tokenize_less_snow, train_less_snow = commands[5:10]
     assert all("device=cuda" in c and "out_dir=outputs/reference/tokens_gpu" in c for c in (tokenize, more))
     assert "seed=5" in tokenize and "seed=6" in more and "data.source.num_clips=2366" in more
     assert "experiment=gaia1/reference/world_model_finetune_gpu" in train
     assert "model.init_from=outputs/reference/world_model_finetune/checkpoints/last.ckpt" in train
-    assert all("outputs/reference/world_model_gpu/checkpoints/last.ckpt" in c for c in (commands[8], commands[-1]))
+    # the last fine-tune: rendered on the CPU, another world, half the default share of snow
+    assert "device=cuda" not in tokenize_less_snow and "seed=8" in tokenize_less_snow
+    assert "snow:0.08" in tokenize_less_snow and "out_dir=outputs/reference/tokens_less_snow" in tokenize_less_snow
+    assert "experiment=gaia1/reference/world_model_less_snow" in train_less_snow
+    assert "model.init_from=outputs/reference/world_model_gpu/checkpoints/last.ckpt" in train_less_snow
+    assert all("outputs/reference/world_model_less_snow/checkpoints/last.ckpt" in c
+               for c in (commands[10], commands[-1]))
 
 
 def test_reproduce_until_stops_after_the_step_and_resumes_past_recorded_steps(tmp_path: Path, monkeypatch, capsys) -> None:
