@@ -85,8 +85,9 @@ demo-train: install
 
 # The GAIA-1 reference recipe from scratch (docs/reference.md): tokenizer, token cache, world model, held-out
 # cross-entropy, controllability with probes, export to gaia_app/weights/gaia1 and gaia_app/weights/MANIFEST.md.
-# Resumable: run it again after an interruption. About 3 hours on 2 CPU cores. GPU=1 adds the GPU fine-tune that made
-# version 5 of the shipped weights (≈ 8 min on one H200; conf/experiment/gaia1/reference/world_model_finetune_gpu.yaml).
+# Resumable: run it again after an interruption. About 3 hours on 2 CPU cores. GPU=1 adds the two fine-tunes that made
+# version 6 of the shipped weights: one on the GPU (≈ 8 min on one H200; conf/experiment/gaia1/reference/
+# world_model_finetune_gpu.yaml), then one on the CPU on clips with less snow (≈ 18 min; world_model_less_snow.yaml).
 reproduce: install
 	$(PY) -m gaia_app.tasks.reproduce --out outputs/reference --weights gaia_app/weights/gaia1 $(if $(GPU),--gpu)
 

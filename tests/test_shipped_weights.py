@@ -310,6 +310,23 @@ def test_showcase_futures_share_their_noise_when_asked(shipped: Path, tmp_path: 
 
 
 @pytest.mark.parametrize("shared", [True, False])
+def test_showcase_prompt_rollouts_share_their_noise_when_asked(shipped: Path, tmp_path: Path, shared: bool) -> None:
+    """The same prompt twice (and no prompt twice): with showcase.shared_noise one rollout each; without, two draws.
+    Different prompts from the same noise still differ."""
+    from gaia_app.tasks.rollout import load_pipeline
+    from gaia_app.tasks.showcase import prompt_panel
+
+    cfg = compose_config("generate", ["mode=showcase", f"weights={shipped}", "seconds=0.5",
+                                      "showcase.prompts=[It is night.,It is night.,It is snowing.]",
+                                      f"showcase.shared_noise={str(shared).lower()}", *SIZE], tmp_path)
+    panel = prompt_panel(cfg, load_pipeline(cfg), torch.Generator().manual_seed(0))
+    none, night, night_again, snow = panel["futures"]
+    assert panel["names"] == ["no prompt", "It is night.", "It is night.", "It is snowing."]
+    assert torch.equal(night, night_again) == shared
+    assert not torch.equal(night, snow) and not torch.equal(none, night)
+
+
+@pytest.mark.parametrize("shared", [True, False])
 def test_controllability_shares_noise_within_a_context_when_asked(shipped: Path, tmp_path: Path, monkeypatch,
                                                                   shared: bool) -> None:
     """controllability.shared_noise hands the model row one noise group per context (command-major batch)."""

@@ -6,8 +6,8 @@ From the shipped weights (weights=gaia1) or checkpoints, in one run:
   and strip.png (one labelled row each, context frames marked green, generated red). The second row is the best
   any future can look: every future is decoded from tokens, and the small tokenizer redraws what its codebook
   lacks (houses come back as hedges, docs/generate.md), context frames included;
-- prompts/: generation from text alone, no prompt against each of `showcase.prompts` (night, snow); grid.mp4 and
-  strip.png;
+- prompts/: generation from text alone, no prompt against each of `showcase.prompts` (night, snow), all from the
+  same sampling noise (`showcase.shared_noise`); grid.mp4 and strip.png;
 - showcase.rrd: both, with the commanded speed and curvature of every future plotted.
 """
 
@@ -84,12 +84,17 @@ def command_panel(cfg: DictConfig, pipeline: Gaia1Pipeline, generator: torch.Gen
 
 
 def prompt_panel(cfg: DictConfig, pipeline: Gaia1Pipeline, generator: torch.Generator) -> dict[str, Any]:
-    """Generation from nothing: no prompt, then each prompt of `showcase.prompts`, `seconds` long."""
+    """Generation from nothing: no prompt, then each prompt of `showcase.prompts`, `seconds` long. With
+    `showcase.shared_noise` every rollout starts from the same generator state, so it draws the same sampling noise
+    (tokens and decoder) and the rows differ by their prompt alone, as the command panel's futures differ by command."""
     frames = future_frames(cfg.seconds, pipeline.rate)
     prompts = list(cfg.showcase.prompts)
-    videos = [rollout_frames(pipeline, None, frames, 1, None, None, generator)]
-    for prompt in prompts:
-        text = pipeline.encode_text_batch([[prompt] * frames])
+    texts = [None] + [pipeline.encode_text_batch([[prompt] * frames]) for prompt in prompts]
+    start = generator.get_state()
+    videos = []
+    for text in texts:
+        if cfg.showcase.shared_noise:
+            generator.set_state(start)
         videos.append(rollout_frames(pipeline, None, frames, 1, text, None, generator))
     return {"futures": torch.cat(videos), "names": ["no prompt"] + prompts}
 
