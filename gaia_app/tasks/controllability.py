@@ -78,13 +78,16 @@ UNIFORM_MIX = {"weather_mix": dict.fromkeys(WEATHERS, 1.0), "time_of_day_mix": d
 
 
 def world(seed: int, count: int, height: int, width: int, frames: int, rate: float, scenario: Scenario | None = None,
-          balanced: bool = False, mix: Mapping[str, Mapping[str, float]] | None = None) -> SyntheticClipDataset:
+          balanced: bool = False, mix: Mapping[str, Mapping[str, float]] | None = None,
+          every_frame: bool = True) -> SyntheticClipDataset:
     """Clips 0..count-1 of the synthetic world `seed`, long enough for `frames` frames at `rate`.
     balanced: weather and time of day drawn uniformly instead of the world's default mix; mix: other
-    {"weather_mix": ..., "time_of_day_mix": ...} (e.g. a training run's)."""
+    {"weather_mix": ..., "time_of_day_mix": ...} (e.g. a training run's). every_frame=False renders only the frames
+    at `rate` (the same frames resampling would keep; a quarter of the rendering at 6.25 Hz)."""
     clip_len = math.ceil((frames - 1) / rate * SOURCE_FPS) + 1
     return SyntheticClipDataset(num_clips=count, seed=seed, height=height, width=width, clip_len=clip_len,
-                                scenario=scenario, **(UNIFORM_MIX if balanced else dict(mix or {})))
+                                scenario=scenario, render_rate=None if every_frame else rate,
+                                **(UNIFORM_MIX if balanced else dict(mix or {})))
 
 
 def world_samples(seed: int, count: int, height: int, width: int, frames: int, rate: float,
@@ -97,7 +100,7 @@ def world_samples(seed: int, count: int, height: int, width: int, frames: int, r
 def world_clips(seed: int, count: int, height: int, width: int, frames: int, rate: float,
                 start: int = 0, balanced: bool = False, mix: Mapping[str, Mapping[str, float]] | None = None) -> list:
     """The clips start..start+count-1 of the synthetic world `seed`."""
-    clips = world(seed, start + count, height, width, frames, rate, balanced=balanced, mix=mix)
+    clips = world(seed, start + count, height, width, frames, rate, balanced=balanced, mix=mix, every_frame=False)
     return [clips[i] for i in range(start, start + count)]
 
 
@@ -109,17 +112,19 @@ def drive(source: np.ndarray, actions: np.ndarray, t0: int, rate: float) -> np.n
 
 
 def driven_clip(seed: int, index: int, height: int, width: int, actions: np.ndarray, t0: int, rate: float,
-                balanced: bool = False) -> Clip:
-    """Clip `index` of the world `seed`, its scene driven open-loop by per-step `actions` (t, 2) from step t0 on."""
+                balanced: bool = False, every_frame: bool = True) -> Clip:
+    """Clip `index` of the world `seed`, its scene driven open-loop by per-step `actions` (t, 2) from step t0 on
+    (every_frame=False: only the frames at `rate` rendered, see `world`)."""
     frames = len(actions)
     source = world(seed, index + 1, height, width, frames, rate, balanced=balanced).simulated_actions(index)
     driven = Scenario(ego_actions=drive(source.astype(np.float64), actions, t0, rate))
-    return world(seed, index + 1, height, width, frames, rate, driven, balanced)[index]
+    return world(seed, index + 1, height, width, frames, rate, driven, balanced, every_frame=every_frame)[index]
 
 
 def resimulate(seed: int, index: int, height: int, width: int, actions: np.ndarray, t0: int, rate: float) -> ProbeClips:
     """The `driven_clip` at `rate`: what a perfect model would show for these actions."""
-    return probe_clips([driven_clip(seed, index, height, width, actions, t0, rate)], rate, len(actions))
+    clip = driven_clip(seed, index, height, width, actions, t0, rate, every_frame=False)
+    return probe_clips([clip], rate, len(actions))
 
 
 def commanded_actions(contexts: ProbeClips, t0: int, frames: int, rate: float,

@@ -151,3 +151,28 @@ def test_open_loop_acceleration_range_sets_the_commands() -> None:
     for bad in ([2.0, 1.0], [0.0], "fast", [0.0, float("nan")]):
         with pytest.raises(ValueError, match="open_loop_acceleration"):
             SyntheticClipDataset(num_clips=1, open_loop_acceleration=bad)
+
+
+@pytest.mark.parametrize("rate", [6.25, 10.0])
+def test_render_rate_renders_only_what_resampling_keeps(rate: float) -> None:
+    """A world rendered at `render_rate` gives exactly the full clip resampled to that rate: frames, actions,
+    timestamps, captions, agents and labels (a whole and a non-whole ratio of the 25 Hz simulation)."""
+    from gaia_app.data.transforms import resample_clip
+
+    kwargs = dict(num_clips=2, seed=9, height=32, width=48, clip_len=13, weather_mix={"rain": 1.0}, driven_share=1.0)
+    full = resample_clip(SyntheticClipDataset(**kwargs)[1], rate)
+    cheap = SyntheticClipDataset(**kwargs, render_rate=rate)[1]
+    assert cheap.frames.shape == full.frames.shape and full.frames.shape[1] < 13
+    assert np.array_equal(cheap.frames, full.frames)  # rain streaks included: they are seeded per simulation step
+    assert np.array_equal(cheap.actions, full.actions) and np.allclose(cheap.timestamps, full.timestamps)
+    assert cheap.text == full.text and cheap.meta == full.meta
+    fields = ("centre", "size", "yaw", "category", "track_id")
+    assert len(cheap.agents) == len(full.agents)
+    assert all(np.array_equal(getattr(a, f), getattr(b, f)) for a, b in zip(cheap.agents, full.agents) for f in fields)
+    assert repr(cheap.frame_meta) == repr(full.frame_meta)
+
+
+@pytest.mark.parametrize("render_rate", [0.0, -1.0, 50.0, float("nan")])
+def test_render_rate_outside_the_simulation_rate_is_refused(render_rate: float) -> None:
+    with pytest.raises(ValueError, match="render_rate"):
+        SyntheticClipDataset(num_clips=1, fps=25.0, render_rate=render_rate)

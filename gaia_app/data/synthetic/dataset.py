@@ -35,13 +35,16 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
         acceleration and curvature (gaia_app/data/synthetic/commands.py): actions the frames do not give away,
         which a world model needs to learn what a command does. Such clips have meta["open_loop"] = True.
     open_loop_acceleration: (low, high) m/s² of the open-loop commands' constant acceleration (uniform).
+    render_rate: render only the frames that resampling to this rate (Hz) keeps; the simulation and the labels still
+        run at `fps`, so a clip equals the full clip resampled to `render_rate` (for consumers that resample anyway:
+        25 Hz → 6.25 Hz renders a quarter of the frames). None: every frame.
     """
 
     def __init__(self, num_clips: int = 64, seed: int = 0, height: int = 64, width: int = 112,
                  cameras: int | Sequence[str] = ("front",), clip_len: int = 8, fps: float = 25.0,
                  weather_mix: Mapping[str, float] | None = None, time_of_day_mix: Mapping[str, float] | None = None,
                  agent_density: float = 1.0, scenario: Scenario | None = None, driven_share: float = 0.0,
-                 open_loop_acceleration: Sequence[float] = ACCELERATION_RANGE):
+                 open_loop_acceleration: Sequence[float] = ACCELERATION_RANGE, render_rate: float | None = None):
         if isinstance(num_clips, bool) or not isinstance(num_clips, (int, np.integer)) or num_clips < 1:
             raise ValueError(f"num_clips: expected a positive integer, got {num_clips!r}")
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -54,6 +57,9 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
             raise ValueError("driven_share > 0 with scenario.ego_actions: the clip's actions are given twice")
         self.num_clips, self.seed, self.scenario = int(num_clips), int(seed), scenario
         self.driven_share = float(driven_share)
+        if render_rate is not None and not (np.isfinite(render_rate) and 0 < render_rate <= fps):
+            raise ValueError(f"render_rate: expected a rate in (0, fps = {fps:g}] Hz or None, got {render_rate!r}")
+        self.render_rate = None if render_rate is None else float(render_rate)
         self.open_loop_acceleration = check_acceleration_range(open_loop_acceleration)
         cameras = cameras if isinstance(cameras, (int, np.integer)) else list(cameras)  # Hydra passes ListConfig
         self.config = WorldConfig.make(height, width, cameras, clip_len, fps, weather_mix, time_of_day_mix, agent_density)
@@ -72,7 +78,7 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
         i = int(index) % self.num_clips
         scenario = self.open_loop_scenario(i)
         meta = {"seed": self.seed, "index": i, **({"open_loop": True} if scenario is not self.scenario else {})}
-        return sample_from_rng(rng, self.config, scenario, f"synthetic-s{self.seed}-{i:06d}", meta)
+        return sample_from_rng(rng, self.config, scenario, f"synthetic-s{self.seed}-{i:06d}", meta, self.render_rate)
 
     def open_loop_scenario(self, index: int) -> Scenario | None:
         """The dataset's scenario, with open-loop ego actions for the `driven_share` of clips that get them."""

@@ -22,6 +22,7 @@ from gaia_app.data.synthetic.rig import build_rig, resolve_camera_names
 from gaia_app.data.synthetic.scenario import TIMES_OF_DAY, WEATHERS, Scenario, draw_setting
 from gaia_app.data.synthetic.scene import ClipRenderer
 from gaia_app.data.synthetic.simulate import FrameState, simulate
+from gaia_app.data.transforms import resample_indices
 
 DEFAULT_WEATHER_MIX = {"clear": 0.55, "rain": 0.15, "fog": 0.15, "snow": 0.15}
 DEFAULT_TIME_OF_DAY_MIX = {"day": 0.6, "dusk": 0.2, "night": 0.2}
@@ -100,8 +101,14 @@ class SyntheticSample:
 
 
 def sample_from_rng(rng: np.random.Generator, config: WorldConfig, scenario: Scenario | None = None,
-                    clip_id: str = "synthetic", meta: dict[str, Any] | None = None) -> SyntheticSample:
-    """Generate one sample drawing every random choice from `rng`."""
+                    clip_id: str = "synthetic", meta: dict[str, Any] | None = None,
+                    render_rate: float | None = None) -> SyntheticSample:
+    """Generate one sample drawing every random choice from `rng`.
+
+    render_rate: render only the frames that resampling the clip to this rate keeps (`resample_indices`); the
+    simulation and every label still run at `config.fps`, so those frames, their actions and labels are exactly what
+    `resample_clip(full_clip, render_rate)` returns, at a fraction of the rendering. The sample's `states` stay
+    per simulation step; the clip holds the kept frames only. None: every frame."""
     scenario = scenario or Scenario()
     if not isinstance(scenario, Scenario):
         raise ValueError(f"scenario: expected a Scenario or None, got {type(scenario).__name__}")
@@ -116,17 +123,21 @@ def sample_from_rng(rng: np.random.Generator, config: WorldConfig, scenario: Sce
     cameras = build_rig(list(config.cameras), config.height, config.width)
     renderer = ClipRenderer(plan, cameras, appearance)
     captioner = Captioner(np.random.default_rng([plan.appearance_seed, 2]), setting)
-    frames = np.empty((len(cameras), config.clip_len, 3, config.height, config.width), np.uint8)
+    timestamps = np.arange(config.clip_len) / config.fps
+    kept = np.arange(config.clip_len) if render_rate is None else resample_indices(timestamps, render_rate)
+    frames = np.empty((len(cameras), len(kept), 3, config.height, config.width), np.uint8)
     texts, agents, metas = [], [], []
-    for i, state in enumerate(states):
-        frames[:, i] = renderer.render(state, i).transpose(0, 3, 1, 2)
+    for i, state in enumerate(states):  # every step captioned: the captioner draws from its generator step by step
         fm = frame_meta(plan.world, state)
         texts.append(captioner.caption(state, fm))
-        fm["boxes_2d"] = renderer.boxes_2d(state, LABEL_RANGE)
-        agents.append(agent_boxes(plan.world, state))
+    for k, i in enumerate(kept):
+        frames[:, k] = renderer.render(states[i], int(i)).transpose(0, 3, 1, 2)
+        fm = frame_meta(plan.world, states[i])
+        fm["boxes_2d"] = renderer.boxes_2d(states[i], LABEL_RANGE)
+        agents.append(agent_boxes(plan.world, states[i]))
         metas.append(fm)
-    actions = np.array([[s.speed, s.curvature] for s in states], dtype=np.float32)
-    clip = Clip(clip_id, frames, np.arange(config.clip_len) / config.fps, actions, texts, agents, cameras,
+    actions = np.array([[states[i].speed, states[i].curvature] for i in kept], dtype=np.float32)
+    clip = Clip(clip_id, frames, timestamps[kept], actions, [texts[i] for i in kept], agents, cameras,
                 clip_meta(plan, metas[0], meta or {}), metas)
     return SyntheticSample(clip, plan, states, renderer)
 
