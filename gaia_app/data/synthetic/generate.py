@@ -126,13 +126,13 @@ def sample_from_rng(rng: np.random.Generator, config: WorldConfig, scenario: Sce
     timestamps = np.arange(config.clip_len) / config.fps
     kept = np.arange(config.clip_len) if render_rate is None else resample_indices(timestamps, render_rate)
     frames = np.empty((len(cameras), len(kept), 3, config.height, config.width), np.uint8)
-    texts, agents, metas = [], [], []
-    for i, state in enumerate(states):  # every step captioned: the captioner draws from its generator step by step
-        fm = frame_meta(plan.world, state)
-        texts.append(captioner.caption(state, fm))
+    step_metas = [frame_meta(plan.world, state) for state in states]
+    # every step captioned, kept or not: the captioner draws from its generator step by step
+    texts = [captioner.caption(state, fm) for state, fm in zip(states, step_metas)]
+    agents, metas = [], []
     for k, i in enumerate(kept):
         frames[:, k] = renderer.render(states[i], int(i)).transpose(0, 3, 1, 2)
-        fm = frame_meta(plan.world, states[i])
+        fm = step_metas[i]
         fm["boxes_2d"] = renderer.boxes_2d(states[i], LABEL_RANGE)
         agents.append(agent_boxes(plan.world, states[i]))
         metas.append(fm)
