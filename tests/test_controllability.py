@@ -36,6 +36,8 @@ from gaia_app.tasks.controllability import (
     error_row,
     probe_training_data,
     random_command,
+    resimulate,
+    world_clips,
 )
 
 
@@ -304,3 +306,12 @@ def test_pooled_ratio_interval_resamples_units_and_pairs_differences() -> None:
     assert better.mean == pytest.approx(0.05) and better.low > 0
     with pytest.raises(ValueError, match="equal non-empty"):
         ratio_interval([1, 2], [3])
+
+
+def test_clips_read_at_the_model_rate_render_only_those_frames() -> None:
+    """world_clips and resimulate hand the probes 6.25 Hz clips rendered at 6.25 Hz (SyntheticClipDataset.render_rate),
+    not 25 Hz clips resampled afterwards: 4 steps are 13 simulation steps but 4 rendered frames."""
+    clip = world_clips(seed=3, count=1, height=32, width=48, frames=4, rate=6.25)[0]
+    assert clip.frames.shape[1] == 4 and np.allclose(clip.timestamps, np.arange(4) / 6.25)
+    actions = np.tile(np.array([[8.0, 0.0]]), (4, 1))
+    assert resimulate(3, 0, 32, 48, actions, 2, 6.25).frames.shape == (1, 4, 3, 32, 48)

@@ -311,8 +311,8 @@ def test_showcase_futures_share_their_noise_when_asked(shipped: Path, tmp_path: 
 
 @pytest.mark.parametrize("shared", [True, False])
 def test_showcase_prompt_rollouts_share_their_noise_when_asked(shipped: Path, tmp_path: Path, shared: bool) -> None:
-    """The same prompt twice (and no prompt twice): with showcase.shared_noise one rollout each; without, two draws.
-    Different prompts from the same noise still differ."""
+    """The same prompt twice: with showcase.shared_noise one rollout; without, two draws. Different prompts (and no
+    prompt) from the same noise still differ."""
     from gaia_app.tasks.rollout import load_pipeline
     from gaia_app.tasks.showcase import prompt_panel
 
