@@ -68,7 +68,8 @@ def main() -> None:
     shape = (1, 3, args.latent_steps, net.latent_channels, h, w)
     covered = agent_token_positions(cond, (h, w), net.patch).numel()
     total = 3 * (h // net.patch) * (w // net.patch)
-    rows = {"no guidance": Guidance(), "full CFG ×4": Guidance(4.0), "selective CFG ×4": Guidance(4.0, spatial=True)}
+    rows = {"no guidance": Guidance(), "full CFG ×4": Guidance(4.0), "selective CFG ×4": Guidance(4.0, spatial=True),
+            "selective CFG ×4, paired agent passes": Guidance(4.0, spatial=True, spatial_pass="paired")}
     seconds = {name: [] for name in rows}
     tokens = {}
     for _ in range(args.repeats):  # interleaved, so machine noise hits every row alike

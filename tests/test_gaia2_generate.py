@@ -211,13 +211,15 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
                   "model.evaluate.probe_steps=3")
     assert set(results["agents"]["rows"]) == {"real frames", "tokenized real", "model, agent conditions",
                                               "model, plain CFG ×3", "model, selective CFG ×3",
-                                              "model, selective CFG ×3, full second pass", "model, agents dropped"}
+                                              "model, selective CFG ×3, full second pass",
+                                              "model, selective CFG ×3, paired agent passes", "model, agents dropped"}
     agents = results["agents"]["rows"]
     for name, row in agents.items():  # every IoU with its interval over scenes; the guided rows paired to plain CFG
         interval = row["iou_agent_masks_interval"]
         assert interval["n"] == 2 and interval["mean"] == row["iou_agent_masks"]
         assert ("iou_agent_masks_minus_plain" in row) == (name in {"model, selective CFG ×3",
-                                                                   "model, selective CFG ×3, full second pass"})
+                                                                   "model, selective CFG ×3, full second pass",
+                                                                   "model, selective CFG ×3, paired agent passes"})
         assert 0 <= row["iou_inside_boxes"] <= 1 and 0 <= row["agent_share_outside_boxes"] <= 1
         assert ("agent_share_outside_boxes_minus_plain" in row) == ("iou_agent_masks_minus_plain" in row)
     paired = agents["model, selective CFG ×3"]["iou_agent_masks_minus_plain"]["mean"]

@@ -69,7 +69,8 @@ def test_spatially_selective_guidance_touches_only_agent_tokens_and_costs_less()
     x = {}
     counts = {}
     variants = {"none": Guidance(), "full": Guidance(scale=4.0), "spatial": Guidance(scale=4.0, spatial=True),
-                "masked": Guidance(scale=4.0, spatial=True, spatial_pass="full")}
+                "masked": Guidance(scale=4.0, spatial=True, spatial_pass="full"),
+                "paired": Guidance(scale=4.0, spatial=True, spatial_pass="paired")}
     for name, guidance in variants.items():
         pipe = pipeline(guidance)
         x[name] = pipe.velocity(noise, torch.full((1, 3), 0.5), cond)
@@ -87,6 +88,14 @@ def test_spatially_selective_guidance_touches_only_agent_tokens_and_costs_less()
     assert counts["masked"] == counts["full"]
     # the report's saving changes the guided tokens: their unconditional pass lacks the rest of the scene
     assert not torch.allclose(flat["spatial"][:, ~outside], flat["masked"][:, ~outside])
+    # the report's dual pass over the agent tokens alone: the direction comes from two passes that see the same tokens
+    assert torch.equal(flat["paired"][:, outside], flat["none"][:, outside])
+    assert counts["paired"] == counts["none"] + 2 * 3 * selected.numel()
+    model, taus = pipeline(Guidance()).model, torch.full((1, 3), 0.5)
+    direction = (model(noise, taus, cond, positions=selected) - model(noise, taus, cond.without("agents"), positions=selected))
+    expected = flat["none"][:, ~outside] + 3.0 * direction[0]  # (t, k, C) at patch 1; v_c + (s − 1)·direction
+    torch.testing.assert_close(flat["paired"][:, ~outside], expected)
+    assert not torch.allclose(flat["paired"][:, ~outside], flat["spatial"][:, ~outside])
     with pytest.raises(ValueError, match="spatial_pass"):
         Guidance(scale=2.0, spatial=True, spatial_pass="half")
 

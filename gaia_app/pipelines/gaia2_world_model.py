@@ -20,7 +20,7 @@ from gaia_app.diffusion.flow_matching import FlowSampler
 from gaia_app.models.gaia2.conditioning import WorldConditions, project_boxes
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
 
-SPATIAL_PASSES = ("agent_tokens", "full")
+SPATIAL_PASSES = ("agent_tokens", "full", "paired")
 
 
 @dataclass
@@ -32,7 +32,10 @@ class Guidance:
         elsewhere keep the conditional velocity.
     spatial_pass: how the second pass of spatial guidance runs: "agent_tokens" (the report's saving: the network
         sees only the agent tokens, so that pass loses the rest of the scene as context) or "full" (the
-        straightforward variant: a full unconditional pass, whose velocity is used inside the agent regions only).
+        straightforward variant: a full unconditional pass, whose velocity is used inside the agent regions only) or
+        "paired" (the report's "dual pass only for the agent tokens": a conditional and an unconditional pass over the
+        agent tokens alone give the guidance direction, so both sides of v_c − v_u lack the same scene; inside the
+        boxes v = v_c + (scale − 1)·(v_c,agents − v_u,agents), v_c from the full conditional pass).
     interval: the flow times (lo, hi), τ = 0 noise … 1 data, at which a step is guided; elsewhere it takes the
         conditional velocity and skips the second pass. (0, 1), the default, guides every step. Guidance in a limited
         interval (Kynkäänniemi et al., NeurIPS 2024) keeps its pull on what forms at high noise (layout, motion)
@@ -137,17 +140,24 @@ class LatentWorldModelPipeline:
         selected = agent_token_positions(cond, (h, w), p).to(x.device)
         if selected.numel() == 0:
             return conditional
+        tokens = rearrange(conditional, "b v t c (h p) (w q) -> b t (v h w) (p q c)", p=p, q=p)
+        picked = tokens[:, :, selected]
         if g.spatial_pass == "full":
             scene = self.model(x, taus, unconditional_cond)
             self.counter.add(b, t, positions)
             unconditional = rearrange(scene, "b v t c (h p) (w q) -> b t (v h w) (p q c)", p=p, q=p)[:, :, selected]
+            direction = picked - unconditional
         else:
             unconditional = self.model(x, taus, unconditional_cond, positions=selected)  # (b, t, k, C·p²)
             self.counter.add(b, t, selected.numel())
-        tokens = rearrange(conditional, "b v t c (h p) (w q) -> b t (v h w) (p q c)", p=p, q=p)
-        picked = tokens[:, :, selected]
+            if g.spatial_pass == "paired":
+                direction = self.model(x, taus, cond, positions=selected) - unconditional
+                self.counter.add(b, t, selected.numel())
+            else:
+                direction = picked - unconditional
         tokens = tokens.clone()
-        tokens[:, :, selected] = unconditional + g.scale * (picked - unconditional)
+        # v_u + s·(v_c − v_u) = v_c + (s − 1)·(v_c − v_u): the same formula for every pass, only the direction differs
+        tokens[:, :, selected] = picked + (g.scale - 1.0) * direction
         return rearrange(tokens, "b t (v h w) (p q c) -> b v t c (h p) (w q)", v=v, h=h // p, p=p, q=p)
 
     def integrate(self, noise: torch.Tensor, cond: WorldConditions, clean: torch.Tensor | None = None,

@@ -15,6 +15,8 @@ conditioning boxes projected into each camera, for
     model, selective CFG ×s     spatially selective guidance: only the tokens inside the agent boxes are guided, and
                                 the second pass sees those tokens alone (the report's saving)
     ..., full second pass       the same regions guided from a full unconditional pass (the straightforward variant)
+    ..., paired agent passes    the same regions guided by the direction between a conditional and an unconditional
+                                pass over the agent tokens alone (the report's dual pass for the agent tokens only)
     model, agents dropped       generated with the agent condition dropped (the floor)
 Each IoU carries a 95 % interval (scenes resampled), and the guided rows their paired difference to plain CFG on the
 same scenes and noise.
@@ -152,7 +154,8 @@ def agent_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Syn
     s = f"{e.cfg_scale:g}"
     guided = {f"model, plain CFG ×{s}": Guidance(e.cfg_scale, ("agents",)),
               f"model, selective CFG ×{s}": Guidance(e.cfg_scale, ("agents",), True),
-              f"model, selective CFG ×{s}, full second pass": Guidance(e.cfg_scale, ("agents",), True, "full")}
+              f"model, selective CFG ×{s}, full second pass": Guidance(e.cfg_scale, ("agents",), True, "full"),
+              f"model, selective CFG ×{s}, paired agent passes": Guidance(e.cfg_scale, ("agents",), True, "paired")}
     rows: dict[str, list[torch.Tensor]] = {"real frames": [], "tokenized real": [], "model, agent conditions": []}
     if e.cfg_scale:
         rows.update({name: [] for name in guided})
