@@ -154,11 +154,11 @@ def test_gaia2_agent_guidance_splits_iou_inside_and_outside_the_boxes(tmp_path) 
             "model.sampler.steps=2"]
     result = module.main(["--out", str(tmp_path), *tiny])
     rows = result["agents"]["rows"]
-    assert len(rows) == 7 and result["cameras"] == ["front", "front_left", "front_right"]
+    assert len(rows) == 8 and result["cameras"] == ["front", "front_left", "front_right"]
     for name, row in rows.items():
         assert 0 <= row["iou_inside_boxes"] <= 1 and 0 <= row["agent_share_outside_boxes"] <= 1
         assert ("iou_inside_boxes_minus_plain" in row) == name.startswith("model, selective CFG")
     table = (tmp_path / "agent_guidance.md").read_text()
-    assert "agent share outside the boxes" in table and table.count("| model, selective CFG ×3") == 2
+    assert "agent share outside the boxes" in table and table.count("| model, selective CFG ×3") == 3
     with pytest.raises(ValueError, match="cfg_scale=0"):
         module.main([*tiny, "model.evaluate.cfg_scale=0"])
