@@ -7,6 +7,9 @@ prediction, which is where the two can differ. Everything after `--` is a Hydra 
 
     python benchmarks/gaia2_agent_guidance.py --weights gaia2 --out outputs/agent_guidance -- \
         model.evaluate.contexts=16 model.evaluate.probe_clips=96 model.evaluate.probe_steps=1500 model.evaluate.cfg_scale=3
+
+`--variants plain,full` runs only plain CFG and the full-second-pass selective rows (besides the unguided ones), so
+a confirmatory comparison of two variants affords more scenes.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import argparse
 import json
 import time
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -28,8 +32,10 @@ from gaia_app.utils.run_dir import atomic_write_text
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
 
-def agent_guidance(weights: str, overrides: list[str]) -> dict[str, Any]:
-    """The agent table (with its inside / outside split) of the weights folder `weights` on held-out scenes."""
+def agent_guidance(weights: str, overrides: list[str],
+                   variants: Sequence[str] = tuple(gaia2_evaluate.GUIDED_VARIANTS)) -> dict[str, Any]:
+    """The agent table (with its inside / outside split) of the weights folder `weights` on held-out scenes, with
+    the guided rows `variants` (plain CFG always)."""
     GlobalHydra.instance().clear()  # a caller's Hydra (tests compose many configs) must not block this one
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("generate", ["model=gaia2", "data=synthetic_rig", "mode=evaluate", f"weights={weights}", *overrides])
@@ -41,8 +47,9 @@ def agent_guidance(weights: str, overrides: list[str]) -> dict[str, Any]:
     probe, fit = gaia2_evaluate.train_segmentation_probe(cfg, frames)
     scenes = [(s, cut_steps(pipeline.encode(s.clip), cfg.model.steps))
               for s in gaia2_evaluate.rig_samples(cfg, cfg.context.seed, cfg.model.evaluate.contexts, frames)]
-    table, _ = gaia2_evaluate.agent_table(cfg, pipeline, scenes, probe, torch.Generator().manual_seed(int(cfg.seed)))
-    return {"weights": weights, "overrides": overrides, "probe_fit": fit, "seconds": time.perf_counter() - started,
+    table, _ = gaia2_evaluate.agent_table(cfg, pipeline, scenes, probe, torch.Generator().manual_seed(int(cfg.seed)),
+                                          variants)
+    return {"weights": weights, "overrides": overrides, "variants": list(variants), "probe_fit": fit, "seconds": time.perf_counter() - started,
             "cameras": [c.name for c in scenes[0][1].cameras], "agents": table}
 
 
@@ -56,9 +63,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--weights", default="gaia2", help="weights folder (gaia2 or a path)")
     parser.add_argument("--out", type=Path, help="folder for agent_guidance.{json,md}")
+    parser.add_argument("--variants", default=",".join(gaia2_evaluate.GUIDED_VARIANTS),
+                        help="guided rows, comma-separated, of " + ", ".join(gaia2_evaluate.GUIDED_VARIANTS)
+                        + " (plain always runs; fewer rows fit more scenes in the same time)")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of generate.yaml (after --)")
     args = parser.parse_args(argv)
-    result = agent_guidance(args.weights, args.overrides)
+    result = agent_guidance(args.weights, args.overrides, [v for v in args.variants.split(",") if v])
     table = markdown(result)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)

@@ -10,6 +10,7 @@ import sys
 import pytest
 import torch
 
+from gaia_app.tasks import gaia2_evaluate
 from tests.conftest import ROOT
 from tests.test_gaia2_generate import checkpoints  # noqa: F401  (a fixture)
 
@@ -162,3 +163,23 @@ def test_gaia2_agent_guidance_splits_iou_inside_and_outside_the_boxes(tmp_path) 
     assert "agent share outside the boxes" in table and table.count("| model, selective CFG ×3") == 3
     with pytest.raises(ValueError, match="cfg_scale=0"):
         module.main([*tiny, "model.evaluate.cfg_scale=0"])
+
+
+def test_agent_table_guided_variants_pick_rows_and_keep_plain_cfg_as_reference(tmp_path) -> None:
+    """`--variants` of benchmarks/gaia2_agent_guidance.py (guided_rows): the chosen selective rows beside plain CFG,
+    which always runs as their reference; an unknown variant is named in the error."""
+    rows = gaia2_evaluate.guided_rows(16, ["full"])
+    assert list(rows) == ["model, plain CFG ×16", "model, selective CFG ×16, full second pass"]
+    assert [(g.scale, g.spatial, g.spatial_pass) for g in rows.values()] == [(16, False, "agent_tokens"), (16, True, "full")]
+    assert len(gaia2_evaluate.guided_rows(3)) == 4
+    with pytest.raises(ValueError, match=r"\['dual'\]"):
+        gaia2_evaluate.guided_rows(3, ["dual"])
+    spec = importlib.util.spec_from_file_location("gaia2_agent_guidance", ROOT / "benchmarks" / "gaia2_agent_guidance.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    result = module.main(["--variants", "full", "--", "model.evaluate.contexts=2", "model.evaluate.probe_clips=2",
+                          "model.evaluate.probe_steps=2", "model.sampler.steps=2"])
+    assert list(result["agents"]["rows"]) == ["real frames", "tokenized real", "model, agent conditions",
+                                              "model, plain CFG ×3", "model, selective CFG ×3, full second pass",
+                                              "model, agents dropped"]
+    assert "iou_agent_masks_minus_plain" in result["agents"]["rows"]["model, selective CFG ×3, full second pass"]

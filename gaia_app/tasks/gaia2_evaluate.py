@@ -38,6 +38,7 @@ Writes gaia2_evaluation.json and gaia2_evaluation.md (the four tables) into the 
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -145,17 +146,38 @@ def iou_rows(probe: Any, rows: dict[str, list[torch.Tensor]], truth: list[torch.
     return table
 
 
+# the guided rows of the agent table: key → (row name suffix after "×s", spatial, spatial_pass); "plain" first, the
+# reference every other guided row is differenced against
+GUIDED_VARIANTS = {"plain": ("plain CFG", False, "agent_tokens"),
+                   "selective": ("selective CFG", True, "agent_tokens"),
+                   "full": ("selective CFG", True, "full"),
+                   "paired": ("selective CFG", True, "paired")}
+PASS_SUFFIX = {"agent_tokens": "", "full": ", full second pass", "paired": ", paired agent passes"}
+
+
+def guided_rows(scale: float, variants: Sequence[str] = tuple(GUIDED_VARIANTS)) -> dict[str, Guidance]:
+    """The agent table's guided rows at guidance `scale`: row name → Guidance on the agents, for the `variants`
+    (keys of GUIDED_VARIANTS; "plain" is always run, as every other guided row is measured against it)."""
+    unknown = sorted(set(variants) - set(GUIDED_VARIANTS))
+    if unknown:
+        raise ValueError(f"guided variants {unknown}: expected some of {list(GUIDED_VARIANTS)}")
+    rows = {}
+    for key, (label, spatial, spatial_pass) in GUIDED_VARIANTS.items():
+        if key == "plain" or key in variants:
+            name = f"model, {label} ×{scale:g}{PASS_SUFFIX[spatial_pass] if spatial else ''}"
+            rows[name] = Guidance(scale, ("agents",), spatial, spatial_pass)
+    return rows
+
+
 def agent_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
-                probe: Any, generator: torch.Generator) -> tuple[dict[str, Any], dict[str, list[torch.Tensor]]]:
+                probe: Any, generator: torch.Generator, variants: Sequence[str] = tuple(GUIDED_VARIANTS)
+                ) -> tuple[dict[str, Any], dict[str, list[torch.Tensor]]]:
     """Rows of the agent-control table (module docstring), and the per-scene videos (v, T, 3, H, W) of its real,
-    tokenized and conditioned rows, which the cross-view table scores too."""
+    tokenized and conditioned rows, which the cross-view table scores too. `variants` picks the guided rows
+    (guided_rows)."""
     e, steps = cfg.model.evaluate, cfg.model.steps
     frames = steps * pipeline.temporal
-    s = f"{e.cfg_scale:g}"
-    guided = {f"model, plain CFG ×{s}": Guidance(e.cfg_scale, ("agents",)),
-              f"model, selective CFG ×{s}": Guidance(e.cfg_scale, ("agents",), True),
-              f"model, selective CFG ×{s}, full second pass": Guidance(e.cfg_scale, ("agents",), True, "full"),
-              f"model, selective CFG ×{s}, paired agent passes": Guidance(e.cfg_scale, ("agents",), True, "paired")}
+    guided = guided_rows(e.cfg_scale, variants)
     rows: dict[str, list[torch.Tensor]] = {"real frames": [], "tokenized real": [], "model, agent conditions": []}
     if e.cfg_scale:
         rows.update({name: [] for name in guided})
