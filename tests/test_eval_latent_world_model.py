@@ -167,7 +167,8 @@ def test_gaia2_agent_guidance_splits_iou_inside_and_outside_the_boxes(tmp_path) 
 
 def test_agent_table_guided_variants_pick_rows_and_keep_plain_cfg_as_reference(tmp_path) -> None:
     """`--variants` of benchmarks/gaia2_agent_guidance.py (guided_rows): the chosen selective rows beside plain CFG,
-    which always runs as their reference; an unknown variant is named in the error."""
+    which always runs as their reference; an unknown variant is named in the error; `--guided-only` leaves out the
+    unguided model rows."""
     rows = gaia2_evaluate.guided_rows(16, ["full"])
     assert list(rows) == ["model, plain CFG ×16", "model, selective CFG ×16, full second pass"]
     assert [(g.scale, g.spatial, g.spatial_pass) for g in rows.values()] == [(16, False, "agent_tokens"), (16, True, "full")]
@@ -177,9 +178,8 @@ def test_agent_table_guided_variants_pick_rows_and_keep_plain_cfg_as_reference(t
     spec = importlib.util.spec_from_file_location("gaia2_agent_guidance", ROOT / "benchmarks" / "gaia2_agent_guidance.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    result = module.main(["--variants", "full", "--", "model.evaluate.contexts=2", "model.evaluate.probe_clips=2",
-                          "model.evaluate.probe_steps=2", "model.sampler.steps=2"])
-    assert list(result["agents"]["rows"]) == ["real frames", "tokenized real", "model, agent conditions",
-                                              "model, plain CFG ×3", "model, selective CFG ×3, full second pass",
-                                              "model, agents dropped"]
+    result = module.main(["--variants", "full", "--guided-only", "--", "model.evaluate.contexts=2",
+                          "model.evaluate.probe_clips=2", "model.evaluate.probe_steps=2", "model.sampler.steps=2"])
+    assert list(result["agents"]["rows"]) == ["real frames", "tokenized real", "model, plain CFG ×3",
+                                              "model, selective CFG ×3, full second pass"]
     assert "iou_agent_masks_minus_plain" in result["agents"]["rows"]["model, selective CFG ×3, full second pass"]

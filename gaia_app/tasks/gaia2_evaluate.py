@@ -170,18 +170,22 @@ def guided_rows(scale: float, variants: Sequence[str] = tuple(GUIDED_VARIANTS)) 
 
 
 def agent_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
-                probe: Any, generator: torch.Generator, variants: Sequence[str] = tuple(GUIDED_VARIANTS)
-                ) -> tuple[dict[str, Any], dict[str, list[torch.Tensor]]]:
+                probe: Any, generator: torch.Generator, variants: Sequence[str] = tuple(GUIDED_VARIANTS),
+                unguided: bool = True) -> tuple[dict[str, Any], dict[str, list[torch.Tensor]]]:
     """Rows of the agent-control table (module docstring), and the per-scene videos (v, T, 3, H, W) of its real,
-    tokenized and conditioned rows, which the cross-view table scores too. `variants` picks the guided rows
-    (guided_rows)."""
+    tokenized and conditioned rows, which the cross-view table scores too (empty without `unguided`). `variants`
+    picks the guided rows (guided_rows); `unguided=False` leaves out the two unguided model rows (agent conditions,
+    agents dropped) for a comparison of guidance variants alone."""
     e, steps = cfg.model.evaluate, cfg.model.steps
     frames = steps * pipeline.temporal
     guided = guided_rows(e.cfg_scale, variants)
-    rows: dict[str, list[torch.Tensor]] = {"real frames": [], "tokenized real": [], "model, agent conditions": []}
+    rows: dict[str, list[torch.Tensor]] = {"real frames": [], "tokenized real": []}
+    if unguided:
+        rows["model, agent conditions"] = []
     if e.cfg_scale:
         rows.update({name: [] for name in guided})
-    rows["model, agents dropped"] = []
+    if unguided:
+        rows["model, agents dropped"] = []
     truth, boxes = [], []
     world, plain = pipeline.world, pipeline.world.guidance
     for sample, clip in tqdm(scenes, desc="agent control"):
@@ -204,7 +208,7 @@ def agent_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Syn
     reference = next(iter(guided)) if e.cfg_scale else None
     table = {"scenes": len(scenes), "latent_steps": steps, "frames": frames,
              "rows": iou_rows(probe, rows, truth, boxes, reference)}
-    return table, {name: rows[name] for name in SHARED_VIDEOS}
+    return table, {name: rows[name] for name in SHARED_VIDEOS if name in rows}
 
 
 def fidelity_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
