@@ -18,8 +18,8 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -51,8 +51,8 @@ def agent_guidance(weights: str, overrides: list[str],
               for s in gaia2_evaluate.rig_samples(cfg, cfg.context.seed, cfg.model.evaluate.contexts, frames)]
     table, _ = gaia2_evaluate.agent_table(cfg, pipeline, scenes, probe, torch.Generator().manual_seed(int(cfg.seed)),
                                           variants, unguided)
-    return {"weights": weights, "overrides": overrides, "variants": list(variants), "probe_fit": fit, "seconds": time.perf_counter() - started,
-            "cameras": [c.name for c in scenes[0][1].cameras], "agents": table}
+    return {"weights": weights, "overrides": overrides, "variants": list(variants), "probe_fit": fit,
+            "seconds": time.perf_counter() - started, "cameras": [c.name for c in scenes[0][1].cameras], "agents": table}
 
 
 def markdown(result: dict[str, Any]) -> str:

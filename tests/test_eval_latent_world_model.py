@@ -17,13 +17,17 @@ from tests.test_gaia2_generate import checkpoints  # noqa: F401  (a fixture)
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-@pytest.fixture(scope="module")
-def bench():
-    spec = importlib.util.spec_from_file_location("eval_latent_world_model",
-                                                  ROOT / "benchmarks" / "eval_latent_world_model.py")
+def load_benchmark(name: str):
+    """The module of benchmarks/<name>.py (the benchmarks folder is scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return load_benchmark("eval_latent_world_model")
 
 
 def test_every_row_has_an_interval_and_its_difference_to_repeat(bench, checkpoints, monkeypatch, capsys) -> None:  # noqa: F811
@@ -57,9 +61,7 @@ def test_interval_is_the_mean_and_a_normal_half_width(bench) -> None:
 
 def test_condition_gain_reads_a_weights_folder(checkpoints, monkeypatch, capsys) -> None:  # noqa: F811
     """benchmarks/gaia2_condition_gain.py --weights gaia2: the teacher-forced gains of the shipped world model."""
-    spec = importlib.util.spec_from_file_location("gaia2_condition_gain", ROOT / "benchmarks" / "gaia2_condition_gain.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_benchmark("gaia2_condition_gain")
     monkeypatch.setattr(sys, "argv", ["gain", "--weights", "gaia2", "--latents", str(checkpoints["latents"] / "val")])
     module.main()
     out = capsys.readouterr().out
@@ -68,9 +70,7 @@ def test_condition_gain_reads_a_weights_folder(checkpoints, monkeypatch, capsys)
 
 def test_gaia2_probe_quality_scores_the_ceiling_against_the_reference() -> None:
     """benchmarks/gaia2_probe_quality.py: the evaluation's action probe, model-free, on two scenes."""
-    spec = importlib.util.spec_from_file_location("gaia2_probe_quality", ROOT / "benchmarks" / "gaia2_probe_quality.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_benchmark("gaia2_probe_quality")
     result = module.probe_quality(["model.evaluate.contexts=2", "model.evaluate.probe_clips=4",
                                    "model.evaluate.probe_steps=3"])
     for metric in ("speed_contrast", "curvature_contrast"):
@@ -93,9 +93,7 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
 
     from gaia_app.utils.shipped import shipped_folder
 
-    spec = importlib.util.spec_from_file_location("gaia2_action_adherence", ROOT / "benchmarks" / "gaia2_action_adherence.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_benchmark("gaia2_action_adherence")
     copy = shutil.copytree(shipped_folder("gaia2"), tmp_path / "copy")
     other = shutil.copytree(shipped_folder("gaia2"), tmp_path / "other")
     weights = load_file(other / "latent_world_model.safetensors")
@@ -148,9 +146,7 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
 def test_gaia2_agent_guidance_splits_iou_inside_and_outside_the_boxes(tmp_path) -> None:
     """benchmarks/gaia2_agent_guidance.py: the evaluation's agent table alone, with the IoU inside the conditioning
     boxes and the agent share outside them for every row, the guided rows paired to plain CFG; refuses scale 0."""
-    spec = importlib.util.spec_from_file_location("gaia2_agent_guidance", ROOT / "benchmarks" / "gaia2_agent_guidance.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_benchmark("gaia2_agent_guidance")
     tiny = ["model.evaluate.contexts=2", "model.evaluate.probe_clips=2", "model.evaluate.probe_steps=2",
             "model.sampler.steps=2"]
     result = module.main(["--out", str(tmp_path), *tiny])
@@ -175,9 +171,7 @@ def test_agent_table_guided_variants_pick_rows_and_keep_plain_cfg_as_reference(t
     assert len(gaia2_evaluate.guided_rows(3)) == 4
     with pytest.raises(ValueError, match=r"\['dual'\]"):
         gaia2_evaluate.guided_rows(3, ["dual"])
-    spec = importlib.util.spec_from_file_location("gaia2_agent_guidance", ROOT / "benchmarks" / "gaia2_agent_guidance.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_benchmark("gaia2_agent_guidance")
     result = module.main(["--variants", "full", "--guided-only", "--", "model.evaluate.contexts=2",
                           "model.evaluate.probe_clips=2", "model.evaluate.probe_steps=2", "model.sampler.steps=2"])
     assert list(result["agents"]["rows"]) == ["real frames", "tokenized real", "model, plain CFG ×3",

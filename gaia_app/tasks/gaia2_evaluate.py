@@ -146,7 +146,7 @@ def iou_rows(probe: Any, rows: dict[str, list[torch.Tensor]], truth: list[torch.
     return table
 
 
-# the guided rows of the agent table: key → (row name suffix after "×s", spatial, spatial_pass); "plain" first, the
+# the guided rows of the agent table: key → (row label before "×s", spatial, spatial_pass); "plain" first, the
 # reference every other guided row is differenced against
 GUIDED_VARIANTS = {"plain": ("plain CFG", False, "agent_tokens"),
                    "selective": ("selective CFG", True, "agent_tokens"),
