@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import pathlib
 from pathlib import Path
 
 import pytest
@@ -43,6 +44,42 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real data folder {SHARED_DATA} is absent")
     return SHARED_DATA
+
+
+TINY_TOKENIZER = ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "data=synthetic_frames_tiny",
+                  "extras.print_config=false"]
+
+
+@pytest.fixture(scope="session")
+def genuine(tmp_path_factory) -> Path:
+    """last.ckpt of a 2-step tiny tokenizer run: a checkpoint exactly as train.py writes it (once per worker)."""
+    from gaia_app.tasks.train import train
+
+    run_dir = tmp_path_factory.mktemp("genuine")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    train(compose_config("train", [*TINY_TOKENIZER, "trainer.max_steps=2"], run_dir))
+    torch.set_num_threads(threads)
+    return run_dir / "checkpoints" / "last.ckpt"
+
+
+class Payload:
+    """Unpickling this calls Path.touch(marker): what a hostile checkpoint would smuggle in."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return pathlib.Path.touch, (pathlib.Path(self.marker),)
+
+
+def tampered(genuine: Path, folder: Path, edit) -> Path:
+    """A copy of the genuine checkpoint with `edit(checkpoint dict)` applied."""
+    checkpoint = torch.load(genuine, weights_only=True)
+    edit(checkpoint)
+    path = folder / "tampered.ckpt"
+    torch.save(checkpoint, path)
+    return path
 
 
 @pytest.fixture(scope="module")

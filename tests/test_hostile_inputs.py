@@ -6,7 +6,6 @@ depth, or dressed up as a gaia_app path), and damaged files are refused with the
 
 from __future__ import annotations
 
-import pathlib
 import pickle
 from pathlib import Path
 
@@ -17,38 +16,11 @@ from gaia_app.lit.checkpoint import UnsafeCheckpointError, check_checkpoint_file
 from gaia_app.tasks.generate import generate
 from gaia_app.tasks.train import train
 from gaia_app.utils.targets import UnsafeTargetError, check_targets
-from tests.conftest import compose_config
+from tests.conftest import TINY_TOKENIZER, Payload, compose_config, tampered
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-TINY = ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "data=synthetic_frames_tiny", "extras.print_config=false"]
-
-
-@pytest.fixture(scope="module")
-def genuine(tmp_path_factory) -> Path:
-    """last.ckpt of a 2-step tiny tokenizer run: a checkpoint exactly as train.py writes it."""
-    run_dir = tmp_path_factory.mktemp("genuine")
-    train(compose_config("train", [*TINY, "trainer.max_steps=2"], run_dir))
-    return run_dir / "checkpoints" / "last.ckpt"
-
-
-class Payload:
-    """Unpickling this calls Path.touch(marker): what a hostile checkpoint would smuggle in."""
-
-    def __init__(self, marker: Path):
-        self.marker = marker
-
-    def __reduce__(self):
-        return pathlib.Path.touch, (pathlib.Path(self.marker),)
-
-
-def tampered(genuine: Path, folder: Path, edit) -> Path:
-    """A copy of the genuine checkpoint with `edit(checkpoint dict)` applied."""
-    checkpoint = torch.load(genuine, weights_only=True)
-    edit(checkpoint)
-    path = folder / "tampered.ckpt"
-    torch.save(checkpoint, path)
-    return path
+TINY = TINY_TOKENIZER
 
 
 def test_a_pickled_payload_is_refused_and_runs_nothing(genuine: Path, tmp_path: Path) -> None:

@@ -10,7 +10,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
-from hydra.utils import instantiate
 
 from gaia_app.lit.base import GaiaModule
 from gaia_app.utils.checkpoint_io import (  # noqa: F401
@@ -26,12 +25,14 @@ from gaia_app.utils.shipped import (
     shipped_folder,
     weight_files,
 )
+from gaia_app.utils.targets import instantiate_checked
 
 
 def load_module(ckpt_path: str | Path, map_location: str | torch.device = "cpu") -> GaiaModule:
     """Instantiate the module from the `model_cfg` stored by `tasks.train` and load its weights (strict)."""
     ckpt = read_checkpoint(ckpt_path, map_location)
-    module: GaiaModule = instantiate(model_config(ckpt, ckpt_path))
+    where = f"checkpoint '{ckpt_path}': hyper_parameters.model_cfg"
+    module: GaiaModule = instantiate_checked(model_config(ckpt, ckpt_path), where)
     module.configure_model()
     module.load_state_dict(ckpt["state_dict"], strict=True)
     return module.eval()

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from gaia_app.utils.checkpoint_io import read_checkpoint
-from gaia_app.utils.shipped import SHIPPED_TARGETS, build
+from gaia_app.utils.shipped import build
 from gaia_app.utils.targets import check_targets
 
 # component → (the LightningModule its checkpoint comes from, {net key of the model config: state-dict prefix})
@@ -60,8 +60,7 @@ def checkpoint_nets(path: str | Path, component: str | tuple[str, ...], role: st
     for key, prefix in prefixes.items():
         if config.get(key) is None:  # e.g. a world model trained without a text encoder
             continue
-        check_targets(config[key], f"{where}.{key}", SHIPPED_TARGETS)
-        net = build(config[key])
+        net = build(config[key], f"{where}.{key}")  # nets and encoders of gaia_app only
         part = {name[len(prefix):]: value for name, value in state.items() if name.startswith(prefix)}
         try:
             net.load_state_dict(part, strict=True)

@@ -283,12 +283,14 @@ def decoder_sampling(config: dict, steps: int | None, kind: str = "ddim") -> tup
     """(noise schedule, sampler, frames T', context frames) of a video decoder's stored config (model.schedule,
     model.sampler with `steps` if given, model.frames, model.context_frames), as VideoDecoderModule builds them;
     kind "one_step_mean" replaces the sampler (`make_decoder_sampler`, `steps` draws, 8 if None)."""
-    from hydra.utils import instantiate
+    from gaia_app.utils.targets import DIFFUSION_TARGETS, instantiate_checked
 
-    schedule = instantiate(config["schedule"])() if config.get("schedule") else CosineNoiseSchedule()
+    where = "the video decoder checkpoint's model config"
+    schedule = instantiate_checked(config["schedule"], f"{where}: schedule", DIFFUSION_TARGETS)() \
+        if config.get("schedule") else CosineNoiseSchedule()
     if not config.get("sampler"):
-        raise ValueError("the video decoder checkpoint's model config has no sampler")
-    stored = instantiate(config["sampler"])
+        raise ValueError(f"{where} has no sampler")
+    stored = instantiate_checked(config["sampler"], f"{where}: sampler", DIFFUSION_TARGETS)
     if kind == "ddim" and not steps:
         sampler = stored(schedule)
     else:

@@ -15,13 +15,13 @@ from __future__ import annotations
 
 import pickle
 import re
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from gaia_app.utils.targets import check_targets
+from gaia_app.utils.untrusted import check_plain
 
 SHARDED_META = "meta.pt"  # what Lightning writes beside the shards: hyper-parameters, loop state
 DCP_METADATA = ".metadata"  # torch.distributed.checkpoint's index of the shards, a pickle
@@ -70,9 +70,14 @@ def check_checkpoint_file(ckpt_path: str | Path) -> None:
 
 
 def checked_dict(checkpoint: Any, path: Path) -> dict[str, Any]:
+    """The checkpoint dict, its hyper-parameters (the module's and the data module's, at every depth) plain data
+    without interpolations (utils/untrusted.py): they are what `instantiate` builds from."""
     if not isinstance(checkpoint, dict):
         raise ValueError(f"checkpoint '{path}' holds a {type(checkpoint).__name__}, expected Lightning's checkpoint "
                          "dict (state_dict, hyper_parameters, ...)")
+    for key, value in checkpoint.items():
+        if isinstance(key, str) and key.endswith("hyper_parameters"):
+            check_plain(value, f"checkpoint '{path}': {key}")
     return checkpoint
 
 
@@ -93,41 +98,100 @@ class DcpMetadataUnpickler(pickle.Unpickler):
         raise pickle.UnpicklingError(f"Unsupported global: {module}.{name}")
 
 
-def check_dcp_metadata(folder: Path) -> None:
-    """torch.distributed.checkpoint reads its `.metadata` with plain pickle: unpickle it here first, safely."""
+def load_dcp_metadata(folder: Path) -> Any:
+    """torch.distributed.checkpoint's index of a shard folder, unpickled by `DcpMetadataUnpickler`, with every file
+    it names checked to lie inside the folder (an index is free to name `../../etc/passwd`)."""
     index = folder / DCP_METADATA
     if not index.is_file():
         raise FileNotFoundError(f"checkpoint folder '{folder}' has no {DCP_METADATA} index of its shards")
     try:
         with index.open("rb") as f:
-            DcpMetadataUnpickler(f).load()
+            metadata = DcpMetadataUnpickler(f).load()
     except pickle.UnpicklingError as error:
         raise UnsafeCheckpointError(f"checkpoint index '{index}' was refused: it holds objects other than "
                                     f"torch.distributed.checkpoint metadata ({error})") from None
     except (EOFError, ValueError, TypeError, AttributeError) as error:
         raise ValueError(f"checkpoint index '{index}' is truncated or damaged ({type(error).__name__}: {error})") from None
+    if not isinstance(getattr(metadata, "state_dict_metadata", None), dict) or \
+            not isinstance(getattr(metadata, "storage_data", None), dict):
+        raise ValueError(f"checkpoint index '{index}' is not a torch.distributed.checkpoint index")
+    root = folder.resolve()
+    for item in metadata.storage_data.values():
+        file = (folder / str(getattr(item, "relative_path", ""))).resolve()
+        if root not in file.parents or not file.is_file():
+            raise UnsafeCheckpointError(f"checkpoint index '{index}' was refused: it names "
+                                        f"{getattr(item, 'relative_path', item)!r}, which is not a file inside "
+                                        f"'{folder}'")
+    return metadata
+
+
+def check_dcp_metadata(folder: Path) -> Any:
+    """Before torch.distributed.checkpoint (Lightning's resume) reads a shard folder: its index is safe, every file
+    it names lies inside the folder, and every non-tensor entry of the shards is plain data (torch unpickles those
+    with weights_only=False)."""
+    metadata = load_dcp_metadata(folder)
+    entries = [fqn for fqn, meta in metadata.state_dict_metadata.items() if not hasattr(meta, "chunks")]
+    if entries:
+        read_dcp_entries(folder, entries, keep=False)
+    return metadata
+
+
+def read_dcp_entries(folder: Path, fqns: list[str], keep: bool = True) -> dict[str, Any]:
+    """The shard entries named by `fqns` (flattened names), nested as they were saved ({"model": {name: tensor}});
+    tensors as they are, other entries unpickled weights-only (plain data; anything else is refused naming the
+    entry). keep=False reads and checks without keeping."""
+    from torch.distributed.checkpoint.default_planner import _EmptyStateDictLoadPlanner
+    from torch.distributed.checkpoint.filesystem import FileSystemReader
+    from torch.distributed.checkpoint.state_dict_loader import _load_state_dict
+    from torch.distributed.checkpoint._traverse import set_element
+
+    class SafeReader(FileSystemReader):
+        def read_metadata(self, *args: Any, **kwargs: Any) -> Any:
+            return load_dcp_metadata(folder)
+
+    refused: list[str] = []
+
+    class SafePlanner(_EmptyStateDictLoadPlanner):
+        def load_bytes(self, read_item: Any, value: Any) -> None:
+            fqn = read_item.dest_index.fqn
+            try:
+                loaded = torch.load(value, weights_only=True)
+            except pickle.UnpicklingError as error:  # kept, raised after torch's loop (which wraps what it raises)
+                found = re.search(r"GLOBAL (\S+)", str(error))
+                refused.append(f"'{fqn}' (unsupported global {found.group(1) if found else error})")
+                return
+            if keep:
+                set_element(self.original_state_dict, self.mappings[fqn], loaded)
+
+    state: dict[str, Any] = {}
+    _load_state_dict(state, storage_reader=SafeReader(folder), planner=SafePlanner(keys=set(fqns)),
+                     no_dist=True)
+    if refused:
+        raise UnsafeCheckpointError(f"checkpoint folder '{folder}' was refused: shard entries holding objects other "
+                                    f"than tensors and plain data, which could run code when loaded: "
+                                    f"{', '.join(refused)}")
+    return state
 
 
 def read_sharded_checkpoint(folder: Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """Gather a torch.distributed.checkpoint folder into one full state dict, without a process group."""
-    from torch.distributed.checkpoint.format_utils import dcp_to_torch_save
-
+    """Gather a torch.distributed.checkpoint folder into one full state dict, without a process group: its tensors
+    only, through the safe index (`load_dcp_metadata`)."""
     meta = folder / SHARDED_META
     if not meta.is_file() or not any(folder.glob("*.distcp")):
         raise FileNotFoundError(f"checkpoint folder '{folder}' is not a sharded checkpoint: expected *.distcp shards "
                                 f"and {SHARDED_META}")
-    check_dcp_metadata(folder)
-    with tempfile.TemporaryDirectory() as tmp:
-        gathered = Path(tmp) / "gathered.pt"
-        dcp_to_torch_save(folder, gathered)
-        shards = safe_torch_load(gathered, map_location)
+    metadata = check_dcp_metadata(folder)
     checkpoint = checked_dict(safe_torch_load(meta, map_location), meta)
     # Lightning's ModelParallelStrategy (fsdp2) saves the weights under "state_dict", its FSDPStrategy under "model"
-    weights_key = next((key for key in ("state_dict", "model") if key in shards), None)
+    found = sorted({fqn.split(".", 1)[0] for fqn in metadata.state_dict_metadata})
+    weights_key = next((key for key in ("state_dict", "model") if key in found), None)
     if weights_key is None:
         raise KeyError(f"checkpoint folder '{folder}' holds no weights: expected a 'state_dict' (fsdp2) or 'model' "
-                       f"(fsdp) entry in its shards, found {sorted(shards)}")
-    checkpoint["state_dict"] = shards[weights_key]
+                       f"(fsdp) entry in its shards, found {found}")
+    tensors = [fqn for fqn, item in metadata.state_dict_metadata.items()
+               if fqn.startswith(f"{weights_key}.") and hasattr(item, "chunks")]
+    weights = read_dcp_entries(folder, tensors)[weights_key]
+    checkpoint["state_dict"] = {name: value.to(map_location) for name, value in weights.items()}
     return checkpoint
 
 

@@ -21,13 +21,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import yaml
-from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from torch import nn
 
 from gaia_app.utils.run_dir import atomic_write_bytes, atomic_write_text
-from gaia_app.utils.targets import UnsafeTargetError, check_targets
+from gaia_app.utils.targets import UnsafeTargetError, check_targets, instantiate_checked
+from gaia_app.utils.untrusted import dump_plain_yaml, read_untrusted_yaml
 
 WEIGHTS_ROOT = Path(__file__).resolve().parents[1] / "weights"
 FORMAT = 1
@@ -86,7 +85,7 @@ def export_component(checkpoint: Mapping[str, Any], folder: str | Path, componen
         prefix = (prefixes or {}).get(key, f"{key}.")
         part = {f"{key}.{name[len(prefix):]}": value for name, value in checkpoint["state_dict"].items()
                 if name.startswith(prefix)}
-        if not part and build(configs[key]).state_dict():
+        if not part and build(configs[key], f"model_cfg.{key}").state_dict():
             # a net with no tensors of its own (a frozen text encoder that loads its weights from its package)
             # is exported as its config alone; any other net must have its tensors in the checkpoint
             raise KeyError(f"checkpoint's state_dict has no tensors under '{prefix}'")
@@ -94,8 +93,8 @@ def export_component(checkpoint: Mapping[str, Any], folder: str | Path, componen
     data = save_tensors(state)
     weights, config = weight_files(folder, component)
     atomic_write_bytes(weights, data)
-    atomic_write_text(config, yaml.safe_dump({"format": FORMAT, "component": component, "dtype": dtype,
-                                              "nets": configs, "info": dict(info)}, sort_keys=False))
+    atomic_write_text(config, dump_plain_yaml({"format": FORMAT, "component": component, "dtype": dtype,
+                                               "nets": configs, "info": dict(info)}))
     return {"parameters": sum(v.numel() for v in state.values()), "bytes": len(data)}
 
 
@@ -108,13 +107,14 @@ def stored(value: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
 
 
 def read_config(path: Path) -> dict[str, Any]:
-    """The component YAML, checked: format, nets that build gaia_app classes only."""
+    """The component YAML, checked: bounded plain data without interpolations (utils/untrusted.py), format, nets
+    that build gaia_app classes only."""
     if not path.is_file():
         raise FileNotFoundError(f"{path} is missing: {restore_hint(path)}")
     try:
-        config = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as error:
-        raise ValueError(f"{path}: not readable YAML ({error}); {restore_hint(path)}") from error
+        config = read_untrusted_yaml(path)
+    except ValueError as error:  # unreadable, too large, an alias or an interpolation
+        raise ValueError(f"{error}; {restore_hint(path)}") from None
     if not isinstance(config, dict) or config.get("format") != FORMAT or not isinstance(config.get("nets"), dict):
         raise ValueError(f"{path}: expected a weights config of format {FORMAT} with a 'nets' mapping; "
                          f"{restore_hint(path)}")
@@ -138,9 +138,10 @@ def read_tensors(path: Path) -> dict[str, torch.Tensor]:
         raise ValueError(f"{path}: not a readable safetensors file ({error}); {restore_hint(path)}") from error
 
 
-def build(config: Any) -> nn.Module:
-    """A net from its Hydra config (a `_partial_` factory, as the training configs write them, or the class)."""
-    made = instantiate(config)
+def build(config: Any, where: str = "net config") -> nn.Module:
+    """A net from its Hydra config (a `_partial_` factory, as the training configs write them, or the class), checked
+    first: plain data, nets and encoders of gaia_app only (`instantiate_checked`)."""
+    made = instantiate_checked(config, where, SHIPPED_TARGETS)
     return made() if callable(made) and not isinstance(made, nn.Module) else made
 
 
@@ -151,7 +152,7 @@ def load_nets(folder: str | Path, component: str, device: str | torch.device = "
     state = read_tensors(weights)
     nets: dict[str, nn.Module] = {}
     for key, net_config in config["nets"].items():
-        net = build(net_config)
+        net = build(net_config, f"{config_path}: nets.{key}")
         part = {name[len(key) + 1:]: value for name, value in state.items() if name.startswith(f"{key}.")}
         try:
             net.load_state_dict(part, strict=True)

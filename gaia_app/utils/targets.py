@@ -17,6 +17,21 @@ from typing import Any
 # optimisers and schedules. Not gaia_app.tasks / pipelines / utils / data / viz, which write files.
 MODEL_TARGETS = ("gaia_app.lit.", "gaia_app.models.", "gaia_app.nn.", "gaia_app.encoders.", "gaia_app.diffusion.",
                  "torch.optim.")
+# what a stored video decoder's sampler and noise schedule may build
+DIFFUSION_TARGETS = ("gaia_app.diffusion.",)
+
+
+def instantiate_checked(node: Any, where: str, allowed: Sequence[str] = MODEL_TARGETS) -> Any:
+    """`hydra.utils.instantiate(node)` of a config read from a file, after checking that it is bounded plain data
+    without interpolations (utils/untrusted.py) and that every `_target_` resolves inside `allowed`: the one way a
+    stored config is built."""
+    from hydra.utils import instantiate
+
+    from gaia_app.utils.untrusted import check_plain
+
+    check_plain(node, where)
+    check_targets(node, where, allowed)
+    return instantiate(node)
 
 
 class UnsafeTargetError(ValueError):
