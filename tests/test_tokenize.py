@@ -14,6 +14,7 @@ from gaia_app.data.datamodules import TokenCacheDataModule
 from gaia_app.data.token_cache import find_segments, load_segment
 from gaia_app.tasks.generate import generate
 from gaia_app.tasks.train import train
+from gaia_app.utils.locks import LOCK_FILE
 from tests.conftest import compose_config
 
 TINY = ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "data=synthetic_frames_tiny", "extras.print_config=false"]
@@ -56,7 +57,7 @@ def test_tokenize_writes_segments_with_sidecars(ckpt: Path, tmp_path: Path) -> N
 def test_tokenize_resumes_and_skips_finished_clips(ckpt: Path, tmp_path: Path) -> None:
     out = tmp_path / "cache"
     run_tokenize(ckpt, tmp_path / "g1", out, "max_clips=3", "splits=[train]")
-    first = {f: f.stat().st_mtime_ns for f in (out / "train").rglob("*") if f.is_file()}
+    first = {f: f.stat().st_mtime_ns for f in (out / "train").rglob("*") if f.is_file() and f.name != LOCK_FILE}
     results = run_tokenize(ckpt, tmp_path / "g2", out, "splits=[train]")
     assert results["train"] == {"written": 5, "skipped": 3, "out_dir": str(out / "train")}
     # the three finished clips were left untouched
@@ -78,7 +79,8 @@ def test_interrupted_write_leaves_no_partial_file(ckpt: Path, tmp_path: Path, mo
         run_tokenize(ckpt, tmp_path / "g1", out, "splits=[train]")
     monkeypatch.undo()
     # sidecars of the first clip may exist, but no token file and no temp file
-    assert not list((out / "train").rglob("*.tmp")) and not list((out / "train").rglob(".*"))
+    assert not list((out / "train").rglob("*.tmp"))
+    assert [p.name for p in (out / "train").rglob(".*")] == [LOCK_FILE]  # the writer's lock, no hidden temp file
     assert not [p for p in (out / "train").rglob("*.npy") if p.name.count(".") == 1]
     results = run_tokenize(ckpt, tmp_path / "g2", out, "splits=[train]")
     assert results["train"]["written"] == 8 and results["train"]["skipped"] == 0

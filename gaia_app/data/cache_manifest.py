@@ -24,6 +24,7 @@ import torch
 from torch import nn
 
 from gaia_app.data.clip import ClipError
+from gaia_app.utils.locks import content
 from gaia_app.utils.run_dir import atomic_write_text
 
 MANIFEST = "cache.json"
@@ -48,16 +49,19 @@ def cache_manifest(kind: str, **fields: Any) -> dict[str, Any]:
 def prepare_cache(folder: str | Path, manifest: Mapping[str, Any], overwrite: bool = False) -> None:
     """Make `folder` ready to receive the cache described by `manifest`: a new or empty folder gets the manifest;
     a folder with the same manifest is kept (the run resumes it); any other content is refused (ClipError naming
-    the folder and each differing field) unless `overwrite`, which empties the folder first."""
+    the folder and each differing field) unless `overwrite`, which empties the folder first. The caller holds the
+    folder's lock (`gaia_app.utils.locks.folder_lock`) from here until its last file is written, so two runs cannot
+    both accept one folder."""
     folder = Path(folder)
     found = read_manifest(folder)
     if found == dict(manifest):
         return
-    if folder.is_dir() and any(folder.iterdir()):
+    if content(folder):
         if not overwrite:
             raise ClipError(f"{folder}: {describe_mismatch(found, manifest)}; write to another out_dir, or pass "
                             "overwrite=true to empty this one and start again")
-        shutil.rmtree(folder)
+        for entry in content(folder):  # the lock file stays: the caller holds it
+            shutil.rmtree(entry) if entry.is_dir() and not entry.is_symlink() else entry.unlink()
     folder.mkdir(parents=True, exist_ok=True)
     atomic_write_text(folder / MANIFEST, json.dumps(dict(manifest), indent=2))
 

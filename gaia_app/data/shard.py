@@ -15,8 +15,11 @@ whole clips (token caches: every segment `<clip>/<camera>` of a clip together) o
 `--split-by run`, whole drives (data.split_by=run's rule, GAIA-1 §3).
 
 Writes are atomic (each shard to a hidden temporary file, then renamed) and resumable: the plan (which sample goes
-into which shard) is a pure function of the source, stored in `.plan.json`; a rerun skips the shards already there
-and refuses to continue into a folder planned from a different source.
+into which shard, and the size and modification time of every source file, and the source's cache manifest) is
+stored in `.plan.json`; a rerun skips the shards already there only when the plan is the same, and refuses to
+continue into a folder planned from a different or since re-written source (a cache re-tokenized after a killed
+run would otherwise mix old and new shards under the new manifest); `--overwrite` removes the old shards and starts
+clean. One writer per folder: the run holds the folder's lock (gaia_app/utils/locks.py).
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from tqdm.auto import tqdm
 
 from gaia_app.data.clip import ClipError
 from gaia_app.data.shard_format import INDEX, KINDS, PLAN, decode_name, encode_name, features_file, shard_name
+from gaia_app.utils.locks import folder_lock
 from gaia_app.utils.run_dir import atomic_write_bytes, atomic_write_text
 
 SIZE_UNITS = {"": 1, "B": 1, "KB": 1e3, "MB": 1e6, "GB": 1e9}
@@ -194,8 +198,10 @@ def feature_table(samples: Sequence[SampleSource]) -> dict[str, np.ndarray]:
 
 
 def write_shards(kind: str, source: str | Path, out: str | Path, shard_size: int | str = "256MB",
-                 val_fraction: float = 0.0, seed: int = 0, split_by: str = "clip", progress: bool = True) -> dict[str, Any]:
-    """Shard `source` into `out` (module docstring); returns the index written to shards.json."""
+                 val_fraction: float = 0.0, seed: int = 0, split_by: str = "clip", progress: bool = True,
+                 overwrite: bool = False) -> dict[str, Any]:
+    """Shard `source` into `out` (module docstring); returns the index written to shards.json. overwrite: remove the
+    shards, plan, index and feature tables already in `out` first."""
     if kind not in KINDS:
         raise ValueError(f"--kind {kind!r}: expected one of {KINDS}")
     if split_by not in ("clip", "run"):
@@ -206,11 +212,21 @@ def write_shards(kind: str, source: str | Path, out: str | Path, shard_size: int
         raise FileNotFoundError(f"{root}: no such {kind} source")
     splits = split_samples(kind, root, val_fraction, seed, split_by)
     plans = {name: plan_shards(samples, size) for name, samples in splits.items()}
-    check_plan(out, kind, splits, plans)
-    index: dict[str, Any] = {"format": 1, "kind": kind, "source": root.name, "shard_size": size, "splits": {}}
     manifest = root / "cache.json"
-    if manifest.is_file():
-        index["cache"] = json.loads(manifest.read_text())
+    cache = json.loads(manifest.read_text()) if manifest.is_file() else None
+    with folder_lock(out, "out"):
+        if overwrite:
+            remove_shards(out)
+        check_plan(out, kind, splits, plans, cache)
+        return write_splits(out, kind, root, size, splits, plans, cache, progress)
+
+
+def write_splits(out: Path, kind: str, root: Path, size: int, splits: dict[str, list[SampleSource]],
+                 plans: dict[str, list[list[int]]], cache: dict[str, Any] | None, progress: bool) -> dict[str, Any]:
+    """Every planned shard not on disk yet, the feature tables and shards.json; returns the index."""
+    index: dict[str, Any] = {"format": 1, "kind": kind, "source": root.name, "shard_size": size, "splits": {}}
+    if cache is not None:
+        index["cache"] = cache
     for name, samples in splits.items():
         entries = []
         for number, members in enumerate(tqdm(plans[name], desc=f"shards {name}", disable=not progress)):
@@ -226,22 +242,44 @@ def write_shards(kind: str, source: str | Path, out: str | Path, shard_size: int
     return index
 
 
-def check_plan(out: Path, kind: str, splits: dict[str, list[SampleSource]], plans: dict[str, list[list[int]]]) -> None:
-    """Record the plan in out/.plan.json, or check that an interrupted run into `out` had the same one."""
-    plan = {"kind": kind, "splits": {name: [[splits[name][i].key for i in members] for members in shards]
-                                     for name, shards in plans.items()}}
+def check_plan(out: Path, kind: str, splits: dict[str, list[SampleSource]], plans: dict[str, list[list[int]]],
+               cache: dict[str, Any] | None = None) -> None:
+    """Record the plan in out/.plan.json, or check that an interrupted run into `out` had the same one: the same
+    samples in the same shards, made from the same files (size and modification time of each) of a source with
+    the same cache manifest."""
+    plan = {"kind": kind, "cache": cache,
+            "splits": {name: [[sample_fingerprint(splits[name][i]) for i in members] for members in shards]
+                       for name, shards in plans.items()}}
     digest = hashlib.sha256(json.dumps(plan, sort_keys=True).encode()).hexdigest()
     path = out / PLAN
     if path.is_file():
         found = json.loads(path.read_text()).get("sha256")
         if found != digest:
-            raise ValueError(f"{out}: its shards were planned from a different source or --shard-size/--val-fraction "
-                             f"(plan {found} ≠ {digest}); write into an empty folder or remove {out}")
+            raise ValueError(f"{out}: its shards were planned from a different source, a source re-written since "
+                             f"(other files or another cache manifest), or another --shard-size/--val-fraction "
+                             f"(plan {found} ≠ {digest}); pass --overwrite to start clean, or write into an empty "
+                             "folder")
         return
     if out.is_dir() and any(out.glob("*.tar")):
-        raise ValueError(f"{out}: holds shards but no {PLAN}; write into an empty folder")
+        raise ValueError(f"{out}: holds shards but no {PLAN}; pass --overwrite to start clean, or write into an "
+                         "empty folder")
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, json.dumps({"sha256": digest}))
+
+
+def sample_fingerprint(sample: SampleSource) -> list[Any]:
+    """A sample's key and, per file, its name, size and modification time: a file re-written since the plan was
+    made changes it."""
+    stats = {name: path.stat() for name, path in sample.files.items()}
+    return [sample.key, sorted((name, st.st_size, st.st_mtime_ns) for name, st in stats.items())]
+
+
+def remove_shards(out: Path) -> None:
+    """What an earlier run wrote into `out`: shards (finished or partial), plan, index and feature tables."""
+    if not out.is_dir():
+        return
+    for path in [*out.glob("*.tar"), *out.glob(".*.partial"), *out.glob("features-*.npz"), out / PLAN, out / INDEX]:
+        path.unlink(missing_ok=True)
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
@@ -255,9 +293,12 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--split-by", default="run", choices=("clip", "run"),
                         help="clip roots: hold out whole runs (default, the clips' run_id/source_video/sequence) or clips")
     parser.add_argument("--seed", type=int, default=0, help="seed of the validation draw")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="remove the shards an earlier run left in OUT and start clean (needed when the source "
+                             "changed since)")
     args = parser.parse_args(argv)
     index = write_shards(args.kind, args.source, args.out, args.shard_size, args.val_fraction, args.seed,
-                         args.split_by if args.kind == "clips" else "clip")
+                         args.split_by if args.kind == "clips" else "clip", overwrite=args.overwrite)
     for name, split in index["splits"].items():
         print(f"{name}: {split['samples']} samples in {len(split['shards'])} shards → {Path(args.out) / INDEX}")
     return index

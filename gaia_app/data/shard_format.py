@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 KINDS = ("clips", "tokens", "latents")
 INDEX = "shards.json"
 PLAN = ".plan.json"
@@ -18,11 +20,15 @@ def features_file(split: str) -> str:
 
 def encode_name(name: str, slash: bool = False) -> str:
     """A key or file name that WebDataset splits back exactly: it cuts a member name at the first `.` of its last
-    path component, and an extension may hold no `/`. `%` → `%25`, `.` → `%2E` (keys), `/` → `%2F` (file names)."""
+    path component, an extension may hold no `/`, and it lowercases the extension (the sample's file names).
+    `%` → `%25`; keys: `.` → `%2E`; file names: `/` → `%2F` and each capital letter → `%` + its hex code
+    (`CAM_FRONT.mp4` → `%43%41%4D_%46%52%4F%4E%54.mp4`), so every camera name a clip folder allows round-trips."""
     name = name.replace("%", "%25")
-    return name.replace("/", "%2F") if slash else name.replace(".", "%2E")
+    if not slash:
+        return name.replace(".", "%2E")
+    return re.sub(r"[A-Z]", lambda m: f"%{ord(m.group()):02X}", name).replace("/", "%2F")
 
 
 def decode_name(name: str) -> str:
-    """The inverse of `encode_name`."""
-    return name.replace("%2F", "/").replace("%2E", ".").replace("%25", "%")
+    """The inverse of `encode_name`, also after WebDataset lowercased the escapes' hex digits."""
+    return re.sub(r"%([0-9A-Fa-f]{2})", lambda m: chr(int(m.group(1), 16)), name)

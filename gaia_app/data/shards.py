@@ -46,12 +46,16 @@ log = logging.getLogger(__name__)
 REMOTE = ("http://", "https://", "pipe:", "s3://", "gs://")
 
 
-def shard_urls(location: str, split: str) -> tuple[list[str], dict[str, Any] | None]:
+def shard_urls(location: str, split: str, allow_pipe: bool = False) -> tuple[list[str], dict[str, Any] | None]:
     """The shards of `split` and the index that lists them: a local folder (its shards.json) or a brace pattern /
     list of URLs (e.g. `pipe:curl -s https://host/train-{000000..000031}.tar`), whose index is read from beside them
-    when it is local and absent otherwise."""
+    when it is local and absent otherwise. A `pipe:` URL runs its text as a shell command, so it is refused unless
+    `allow_pipe` (data.allow_pipe=true; docs/safety.md)."""
     from braceexpand import braceexpand
 
+    if "pipe:" in location and not allow_pipe:
+        raise ValueError(f"data.path={location[:120]!r}: a 'pipe:' URL runs its text as a shell command for every "
+                         "shard; set data.allow_pipe=true if you wrote it yourself (docs/safety.md)")
     path = Path(location)
     if not location.startswith(REMOTE) and path.is_dir():
         index_path = path / INDEX
@@ -114,14 +118,16 @@ class ShardStream(IterableDataset):
         collate: list of items → batch. batch_size: items per batch (the last of a worker may be smaller).
         shuffle: shuffle shards and items (training). shuffle_buffer: items in the shuffle buffer.
         weights: per-row acceptance weights (balanced sampling) or None. seed: base seed.
+        skip_bad: a sample that cannot be read is logged (shard, index in the shard, key, error), counted and
+            skipped; otherwise (default) it stops the run with that message.
     """
 
     def __init__(self, urls: Sequence[str], decode: Callable[[str, dict[str, bytes]], list[Any]], collate: Callable[[list], Any],
                  batch_size: int, shuffle: bool = True, shuffle_buffer: int = 256, weights: np.ndarray | None = None,
-                 seed: int = 0):
+                 seed: int = 0, skip_bad: bool = False):
         self.urls, self.decode, self.collate = list(urls), decode, collate
         self.batch_size, self.shuffle, self.shuffle_buffer = batch_size, shuffle, shuffle_buffer
-        self.weights, self.seed = weights, seed
+        self.weights, self.seed, self.skip_bad = weights, seed, skip_bad
         self.epoch, self.rank, self.world = 0, 0, 1
         self.skip: list[int] = []  # batches to skip per worker (resuming)
 
@@ -135,10 +141,25 @@ class ShardStream(IterableDataset):
             log.warning("shards: rank %d worker %d has none of the %d shards (%d ranks × %d workers read them): write "
                         "smaller shards (--shard-size) or use fewer workers", self.rank, worker, len(self.urls),
                         self.world, workers)
+        position: collections.Counter[str] = collections.Counter()  # samples seen per shard
+        skipped = 0
         for sample in wds.tarfile_to_samples()(iter([{"url": u} for u in mine])):
-            key, files, features = sample_files(sample)
-            if self.weights is None or rng.random() < self.weights[int(features["row"])]:
-                yield from self.decode(key, files)
+            url = str(sample.get("__url__", "?"))
+            position[url] += 1
+            try:
+                key, files, features = sample_files(sample)
+                accepted = self.weights is None or rng.random() < self.weights[int(features["row"])]
+                items = self.decode(key, files) if accepted else []
+            except Exception as error:  # noqa: BLE001 (any reader error of one sample: named, then raised or skipped)
+                where = f"{url}: sample {position[url] - 1} ('{decode_name(str(sample.get('__key__')))}')"
+                if not self.skip_bad:
+                    raise ClipError(f"{where} cannot be read ({type(error).__name__}: {error}); set "
+                                    "data.skip_bad_samples=true to count and skip such samples") from error
+                skipped += 1
+                log.warning("shards: skipped %s (%s: %s); %d skipped so far by this worker", where,
+                            type(error).__name__, error, skipped)
+                continue
+            yield from items
 
     def shuffled(self, items: Iterator[Any], worker: int) -> Iterator[Any]:
         """Items mixed by a buffer of `shuffle_buffer` (each new item swaps with a random buffered one)."""
@@ -275,13 +296,15 @@ class ShardDataModule(L.LightningDataModule, ABC):
         epoch_batches: batches per epoch and rank (None: the whole stream).
         index_dir: a local folder with shards.json and the feature tables, for balancing remote shards (a local
             shard folder is its own).
+        skip_bad_samples: count, log and skip samples that cannot be read (default: stop, naming shard and sample).
+        allow_pipe: accept `pipe:` URLs in `path` (they run a shell command per shard; docs/safety.md).
     """
 
     def __init__(self, path: str, batch_size: int = 8, num_workers: int = 0, shuffle_buffer: int = 256,
                  balance: dict[str, Any] | None = None, seed: int = 0, epoch_batches: int | None = None,
-                 index_dir: str | None = None):
+                 index_dir: str | None = None, skip_bad_samples: bool = False, allow_pipe: bool = False):
         super().__init__()
-        self.index_dir = index_dir
+        self.index_dir, self.skip_bad_samples, self.allow_pipe = index_dir, bool(skip_bad_samples), bool(allow_pipe)
         self.path, self.batch_size, self.num_workers = str(path), batch_size, num_workers
         self.shuffle_buffer, self.balance, self.seed, self.epoch_batches = shuffle_buffer, balance, seed, epoch_batches
         self.loaders: dict[str, ShardLoader] = {}
@@ -295,7 +318,7 @@ class ShardDataModule(L.LightningDataModule, ABC):
         """A picklable function batching a list of items."""
 
     def urls(self, split: str) -> tuple[list[str], dict[str, Any] | None]:
-        return shard_urls(self.path.replace("{split}", split), split)
+        return shard_urls(self.path.replace("{split}", split), split, self.allow_pipe)
 
     def loader(self, split: str) -> ShardLoader:
         if split not in self.loaders:
@@ -303,7 +326,8 @@ class ShardDataModule(L.LightningDataModule, ABC):
             train = split == "train"
             weights = acceptance(self.index_dir or (self.path if index else None), split, self.balance) if train else None
             stream = ShardStream(urls, self.decoder(train), self.collate(), self.batch_size, shuffle=train,
-                                 shuffle_buffer=self.shuffle_buffer, weights=weights, seed=self.seed)
+                                 shuffle_buffer=self.shuffle_buffer, weights=weights, seed=self.seed,
+                                 skip_bad=self.skip_bad_samples)
             self.loaders[split] = ShardLoader(stream, self.num_workers, self.epoch_batches if train else None,
                                               self.finish())
         return self.loaders[split]

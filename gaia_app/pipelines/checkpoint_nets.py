@@ -20,6 +20,7 @@ from torch import nn
 from gaia_app.utils.checkpoint_io import read_checkpoint
 from gaia_app.utils.shipped import build
 from gaia_app.utils.targets import check_targets
+from gaia_app.utils.untrusted import check_finite
 
 # component → (the LightningModule its checkpoint comes from, {net key of the model config: state-dict prefix})
 COMPONENTS = {
@@ -62,6 +63,7 @@ def checkpoint_nets(path: str | Path, component: str | tuple[str, ...], role: st
             continue
         net = build(config[key], f"{where}.{key}")  # nets and encoders of gaia_app only
         part = {name[len(prefix):]: value for name, value in state.items() if name.startswith(prefix)}
+        check_finite(part, f"{role}={path}: state_dict under '{prefix}'")
         try:
             net.load_state_dict(part, strict=True)
         except RuntimeError as error:

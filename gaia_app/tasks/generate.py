@@ -47,6 +47,7 @@ from gaia_app.tasks.showcase import showcase
 from gaia_app.tasks.gaia2_evaluate import gaia2_evaluate
 from gaia_app.tasks.gaia2_generate import GAIA2_MODES, gaia2_generate
 from gaia_app.tasks.rollout import ROLLOUT_MODES, rollout
+from gaia_app.utils.locks import folder_lock
 from gaia_app.utils.run_dir import atomic_write_text, save_resolved_config
 from gaia_app.viz.media import log_token_map, to_hwc_uint8
 
@@ -167,11 +168,12 @@ def cache_splits(cfg: DictConfig, name: str, make_writers: Callable[[Any, Path],
         if split not in splits:
             raise ValueError(f"splits: unknown split '{split}', expected some of {sorted(splits)}")
         out_dir = Path(cfg.out_dir) / split
-        prepare_cache(out_dir, made, overwrite=bool(cfg.overwrite))
-        done, write = make_writers(datamodule, out_dir)
-        results[split] = {**cache_split(splits[split], out_dir, cfg.max_clips, f"{name} {split}", done, write,
-                                              cfg.workers),
-                          "out_dir": str(out_dir)}
+        with folder_lock(out_dir, "out_dir"):  # one writer per cache folder, from the manifest check to the end
+            prepare_cache(out_dir, made, overwrite=bool(cfg.overwrite))
+            done, write = make_writers(datamodule, out_dir)
+            results[split] = {**cache_split(splits[split], out_dir, cfg.max_clips, f"{name} {split}", done, write,
+                                            cfg.workers),
+                              "out_dir": str(out_dir)}
     return results
 
 

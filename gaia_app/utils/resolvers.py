@@ -30,6 +30,8 @@ def register_resolvers() -> None:
     OmegaConf.register_new_resolver("val_seed", lambda seed: int(seed) + VAL_SEED_OFFSET, replace=True)
     # ranks started by srun / torchrun compose their configs separately: a timestamp alone could differ
     OmegaConf.register_new_resolver("launch_id", launch_id, replace=True)
+    # this process's id: default run dirs of two runs started in the same second differ (cached: one value per run)
+    OmegaConf.register_new_resolver("pid", lambda: str(os.getpid()), use_cache=True, replace=True)
 
 
 register_resolvers()

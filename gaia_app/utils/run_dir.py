@@ -1,4 +1,4 @@
-"""Run-directory helpers: atomic writes and the resolved config of a run."""
+"""Run-directory helpers: one run per folder, atomic writes and the resolved config of a run."""
 
 from __future__ import annotations
 
@@ -8,8 +8,40 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from typing import Any
+
 import numpy as np
+from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
+
+from gaia_app.utils.locks import FolderInUseError, FolderLock
+
+# set by launchers on the processes that share rank 0's run dir (Lightning's DDP children, torchrun, srun)
+SECONDARY_RANK_VARIABLES = ("LOCAL_RANK", "RANK", "SLURM_PROCID", "NODE_RANK")
+
+
+class RunDirLock(Callback):
+    """Hydra callback (conf/hydra/default.yaml): the run takes its run dir's lock before Hydra writes `.hydra/` into
+    it, and holds it until the process ends. A second run given the same `hydra.run.dir` while the first runs fails
+    at once, naming the folder, instead of overwriting the first run's config and mixing their checkpoints; run
+    again after it ends, the folder is reused as before (`ckpt_path=last` resumes there). The processes a launcher
+    starts for one run (other ranks) share rank 0's folder and take no lock."""
+
+    def __init__(self) -> None:
+        self.lock: FolderLock | None = None
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        if any(os.environ.get(name, "0") not in ("", "0") for name in SECONDARY_RANK_VARIABLES):
+            return
+        try:
+            self.lock = FolderLock(str(OmegaConf.select(config, "hydra.run.dir")), "hydra.run.dir").acquire()
+        except FolderInUseError as error:
+            # Hydra turns a callback's exceptions into warnings and carries on; SystemExit is not an Exception
+            raise SystemExit(f"Error: {error}") from None
+
+    def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
+        if self.lock is not None:
+            self.lock.release()
 
 
 @contextmanager

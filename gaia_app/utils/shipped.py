@@ -26,7 +26,7 @@ from torch import nn
 
 from gaia_app.utils.run_dir import atomic_write_bytes, atomic_write_text
 from gaia_app.utils.targets import UnsafeTargetError, check_targets, instantiate_checked
-from gaia_app.utils.untrusted import dump_plain_yaml, read_untrusted_yaml
+from gaia_app.utils.untrusted import check_finite, dump_plain_yaml, read_untrusted_yaml
 
 WEIGHTS_ROOT = Path(__file__).resolve().parents[1] / "weights"
 FORMAT = 1
@@ -133,9 +133,11 @@ def read_tensors(path: Path) -> dict[str, torch.Tensor]:
     if not path.is_file():
         raise FileNotFoundError(f"{path} is missing: {restore_hint(path)}")
     try:
-        return load_file(str(path))
+        tensors = load_file(str(path))
     except (SafetensorError, OSError) as error:
         raise ValueError(f"{path}: not a readable safetensors file ({error}); {restore_hint(path)}") from error
+    check_finite(tensors, str(path))
+    return tensors
 
 
 def build(config: Any, where: str = "net config") -> nn.Module:
@@ -146,8 +148,9 @@ def build(config: Any, where: str = "net config") -> nn.Module:
 
 
 def load_nets(folder: str | Path, component: str, device: str | torch.device = "cpu") -> tuple[dict[str, nn.Module], dict]:
-    """({net key: float32 module in eval mode}, info) of a component written by `export_component`."""
-    weights, config_path = weight_files(folder, component)
+    """({net key: float32 module in eval mode}, info) of a component written by `export_component`, from a folder
+    or a shipped name (e.g. "gaia1", `shipped_folder`)."""
+    weights, config_path = weight_files(shipped_folder(folder), component)
     config = read_config(config_path)
     state = read_tensors(weights)
     nets: dict[str, nn.Module] = {}

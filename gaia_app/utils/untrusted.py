@@ -105,3 +105,14 @@ def check_scalar(value: Any, where: str) -> None:
             f"{where}: {value[:80]!r} is an OmegaConf interpolation; a config read from a file is refused when it "
             "holds one, since resolving it can build objects or read the environment (gaia_app stores configs "
             "resolved, so a genuine file has none)")
+
+
+def check_finite(tensors: Mapping[str, torch.Tensor], where: str) -> None:
+    """Raise UntrustedDataError naming `where` and the first tensors holding NaN or ±inf: weights like that give a
+    black video or a NaN-probability traceback far from the file that caused it."""
+    bad = [name for name, value in tensors.items()
+           if isinstance(value, torch.Tensor) and value.is_floating_point() and not bool(torch.isfinite(value).all())]
+    if bad:
+        raise UntrustedDataError(f"{where}: tensor {bad[0]!r} holds NaN or infinite values"
+                                 + (f" (and {len(bad) - 1} more: {bad[1:4]})" if len(bad) > 1 else "")
+                                 + "; the weights are damaged: use another checkpoint or export them again")

@@ -4,6 +4,7 @@ writing, every sample once per epoch across workers, exact mid-epoch resume, bal
 from __future__ import annotations
 
 import collections
+import io
 import json
 import tarfile
 from pathlib import Path
@@ -173,7 +174,9 @@ def test_url_patterns_and_pipes_read_the_same_stream(tokens) -> None:
     assert shard_urls(pattern, "train")[0] == [str(shards / n) for n in names]
     piped = "::".join(f"pipe:cat {shards / n}" for n in names)
     expected = window_ids(token_module(str(shards)).train_dataloader())
-    assert window_ids(token_module(piped).train_dataloader()) == expected
+    assert window_ids(token_module(piped, allow_pipe=True).train_dataloader()) == expected
+    with pytest.raises(ValueError, match=r"'pipe:' URL runs its text as a shell command.*data\.allow_pipe=true"):
+        token_module(piped).train_dataloader()
     with pytest.raises(FileNotFoundError, match="not found"):
         shard_urls(f"{shards}/nothing-{{0..1}}.tar", "train")
 
@@ -225,8 +228,8 @@ def test_balancing_remote_shards_needs_their_index(tokens, tmp_path: Path) -> No
     piped = "::".join(f"pipe:cat {shards / n}" for n in names)
     balance = {"features": {"speed": 2}, "exponent": 1.0}
     with pytest.raises(ValueError, match="data.index_dir"):
-        token_module(piped, balance=balance).train_dataloader()
-    assert list(token_module(piped, balance=balance, index_dir=str(shards)).train_dataloader())
+        token_module(piped, balance=balance, allow_pipe=True).train_dataloader()
+    assert list(token_module(piped, balance=balance, index_dir=str(shards), allow_pipe=True).train_dataloader())
     with pytest.raises(ValueError, match=r"\['weather'\]: not in the shards' feature table"):
         token_module(shards, balance={"features": {"weather": None}, "exponent": 1.0}).train_dataloader()
 
@@ -284,3 +287,61 @@ def test_http_urls_stream_like_local_shards(tokens) -> None:
     finally:
         server.shutdown()
     assert streamed == window_ids(token_module(shards).train_dataloader())
+
+
+def test_a_re_tokenized_source_is_refused_after_a_killed_run_unless_overwritten(tmp_path: Path) -> None:
+    import json
+    import os
+
+    cache = token_cache(tmp_path / "cache", clips=4)
+    (cache / "cache.json").write_text(json.dumps({"kind": "gaia1_tokens", "tokenizer_sha256": "old"}))
+    out = tmp_path / "shards"
+    write_shards("tokens", cache, out, shard_size=4000, progress=False)
+    sorted(out.glob("*.tar"))[-1].unlink()  # killed before the last shard was renamed into place
+    (cache / "cache.json").write_text(json.dumps({"kind": "gaia1_tokens", "tokenizer_sha256": "new"}))
+    with pytest.raises(ValueError, match="re-written since.*--overwrite"):
+        write_shards("tokens", cache, out, shard_size=4000, progress=False)
+    (cache / "cache.json").write_text(json.dumps({"kind": "gaia1_tokens", "tokenizer_sha256": "old"}))
+    segment = find_segments(cache)[0]
+    os.utime(segment, ns=(segment.stat().st_atime_ns, segment.stat().st_mtime_ns + 10**9))  # re-written file
+    with pytest.raises(ValueError, match="re-written since"):
+        write_shards("tokens", cache, out, shard_size=4000, progress=False)
+    index = write_shards("tokens", cache, out, shard_size=4000, progress=False, overwrite=True)
+    assert sum(len(s["shards"]) for s in index["splits"].values()) == len(list(out.glob("*.tar")))
+
+
+def test_camera_names_legal_for_clips_round_trip_through_shards(tmp_path: Path) -> None:
+    from gaia_app.data.clip_writer import write_clip
+    from gaia_app.data.synthetic import generate_clip
+
+    for seed in range(2):
+        clip = generate_clip(seed=seed, height=32, width=56, cameras=["front"], clip_len=12, fps=25.0)
+        clip.cameras[0].name = "CAM_FRONT"
+        write_clip(clip, tmp_path / "clips")
+    assert all((folder / "CAM_FRONT.mp4").is_file() for folder in (tmp_path / "clips").iterdir())
+    write_shards("clips", tmp_path / "clips", tmp_path / "shards", shard_size="1MB", progress=False)
+    module = ClipShardDataModule(str(tmp_path / "shards"), clip_len=4, fps=12.5, height=32, width=56, batch_size=2,
+                                 cameras=["CAM_FRONT"])
+    batch = next(iter(module.train_dataloader()))
+    assert batch["video"].shape == (2, 1, 4, 3, 32, 56)
+
+
+def test_a_bad_sample_names_its_shard_and_index_and_can_be_skipped(tmp_path: Path) -> None:
+    cache = token_cache(tmp_path / "cache", clips=4)
+    out = tmp_path / "shards"
+    write_shards("tokens", cache, out, shard_size="1MB", progress=False)
+    shard = out / "train-000000.tar"
+    with tarfile.open(shard) as tar:
+        members = [(m, tar.extractfile(m).read()) for m in tar.getmembers()]
+    broken = tmp_path / "broken.tar"
+    with tarfile.open(broken, "w", format=tarfile.GNU_FORMAT) as tar:
+        for member, data in members:
+            if member.name.startswith("clip1/front.") and member.name.endswith("tokens.npy"):
+                data = b"not a numpy file"
+                member.size = len(data)
+            tar.addfile(member, io.BytesIO(data))
+    broken.replace(shard)
+    with pytest.raises(Exception, match=r"train-000000\.tar: sample 2 \('clip1/front'\) cannot be read.*skip_bad"):
+        list(token_module(out, shuffle_buffer=1).train_dataloader())
+    kept = window_ids(token_module(out, shuffle_buffer=1, skip_bad_samples=True).train_dataloader())
+    assert len(kept) == (4 * 2 - 1) * 4  # every window of the 7 good segments, none of the bad one
