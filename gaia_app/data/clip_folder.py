@@ -206,10 +206,22 @@ def _view_names_on_disk(clip_dir: Path, meta: dict[str, Any], cameras: list[Came
     return [check_camera_name(n, f"{clip_dir / (n + VIDEO_SUFFIX)}") for n in names]
 
 
+def check_no_escaping_links(clip_dir: Path) -> None:
+    """Refuse a clip folder holding a symbolic link whose target lies outside it: reading (or sharding) the clip
+    would read, and pack, whatever file it points to."""
+    root = clip_dir.resolve()
+    for path in clip_dir.rglob("*"):
+        if path.is_symlink():
+            target = path.resolve()
+            if target != root and root not in target.parents:
+                raise ClipError(f"{path}: a symbolic link to {target}, outside its clip folder; copy the file into "
+                                "the folder instead")
+
+
 def _check_fps(meta: dict[str, Any], meta_path: Path, labels: _Labels, labels_path: Path) -> None:
     fps = meta.get("fps")
-    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or fps <= 0:
-        raise ClipError(f"{meta_path}: field 'fps' must be a positive number, got {fps!r}")
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or fps <= 0:
+        raise ClipError(f"{meta_path}: field 'fps' must be a positive finite number, got {fps!r}")
     if len(labels.timestamps) > 1:
         rate = 1.0 / float(np.median(np.diff(labels.timestamps)))
         if abs(rate - fps) > FPS_TOLERANCE * fps:
@@ -222,6 +234,7 @@ def _load_layout(clip_dir: str | Path, cameras: list[str] | None) -> _Layout:
     if not clip_dir.is_dir():
         raise ClipError(f"{clip_dir}: clip folder not found")
     meta_path, labels_path = clip_dir / META_FILE, clip_dir / LABELS_FILE
+    check_no_escaping_links(clip_dir)
     meta = _load_json(meta_path)
     if not isinstance(meta, dict):
         raise ClipError(f"{meta_path}: expected a JSON object")

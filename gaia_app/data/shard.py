@@ -92,7 +92,11 @@ def token_samples(root: Path) -> list[SampleSource]:
 
 
 def folder_files(folder: Path) -> dict[str, Path]:
-    """Every file under a sample folder, by its relative path (hidden files and folders left out)."""
+    """Every file under a sample folder, by its relative path (hidden files and folders left out); a symbolic link
+    leaving the folder is refused (its target would be packed into the shard)."""
+    from gaia_app.data.clip_folder import check_no_escaping_links
+
+    check_no_escaping_links(folder)
     files = {}
     for path in sorted(folder.rglob("*")):
         relative = path.relative_to(folder)

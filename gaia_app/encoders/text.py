@@ -55,6 +55,10 @@ class LearnedTextEncoder(nn.Module):
                 return self.index[word[:length]]
         return None
 
+    def token_count(self, caption: str) -> int:
+        """Keywords `caption` holds (the m slots keep the first m of them)."""
+        return sum(self.keyword(word) is not None for word in re.findall(r"[a-z]+", caption.lower()))
+
     def ids(self, caption: str | None) -> list[int]:
         """m keyword ids of one caption (None: all padding; text without keywords: [1, 0, …])."""
         words = re.findall(r"[a-z]+", (caption or "").lower())
@@ -110,6 +114,10 @@ class PretrainedTextEncoder(nn.Module):
         self.frozen = {"model": model.eval().requires_grad_(False)}
         self.cache: OrderedDict[str, torch.Tensor] = OrderedDict()
         self.register_buffer("anchor", torch.zeros(0), persistent=False)
+
+    def token_count(self, caption: str) -> int:
+        """Tokens of `caption` with the encoder's special tokens, before padding or truncation to m."""
+        return len(self.tokenizer(caption, truncation=False)["input_ids"])
 
     @property
     def model(self) -> nn.Module:
@@ -297,3 +305,15 @@ def check_shape(model: nn.Module, tokenizer, dim: int, tokens: int, source: str,
     if not special < tokens <= limit:
         raise ValueError(f"{source}: m={tokens} text tokens must exceed its {special} special tokens "
                          f"and be ≤ {limit} positions (model.net.text_tokens)")
+
+
+def check_caption_fits(encoder: nn.Module | None, caption: str | None, setting: str) -> None:
+    """Refuse a user's caption that `encoder` would cut to its m tokens (silently losing its end), naming the
+    setting, the caption's token count and m. Encoders without `token_count` (or no encoder) pass."""
+    if caption is None or encoder is None or not hasattr(encoder, "token_count"):
+        return
+    count = encoder.token_count(caption)
+    if count > encoder.tokens:
+        kind = "keywords" if isinstance(encoder, LearnedTextEncoder) else "tokens"
+        raise ValueError(f"{setting}: {count} {kind}, but the world model's text encoder reads {encoder.tokens}; "
+                         "the rest would be cut off silently: shorten it")

@@ -13,7 +13,8 @@ interpolation task (N → 2N − 1 → 4N − 3 frames). Every window is sampled
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
@@ -118,12 +119,33 @@ class VideoDecodingPipeline:
         done = torch.zeros(n, dtype=torch.bool)
         order = backward_windows if self.backward else forward_windows
         windows = full_length(order(n, self.frames, self.context), n, self.frames)
-        for start, stop in tqdm(windows, desc="decode", disable=not self.progress):
-            context_mask = done[start:stop].to(tokens.device).expand(b, -1)
-            frames[:, start:stop] = self.window(tokens[:, start:stop], ~context_mask, frames[:, start:stop],
-                                                context_mask, generator)
-            done[start:stop] = True
+        with self.bar(windows, "decode") as bar:
+            for start, stop in bar:
+                context_mask = done[start:stop].to(tokens.device).expand(b, -1)
+                frames[:, start:stop] = self.window(tokens[:, start:stop], ~context_mask, frames[:, start:stop],
+                                                    context_mask, generator)
+                done[start:stop] = True
         return frames
+
+    @contextmanager
+    def bar(self, windows: list[tuple[int, int]], desc: str) -> Iterator[tqdm]:
+        """A progress bar over windows whose text also counts the decoder's forward passes inside the current
+        window: a window of 50 DDIM steps takes minutes on a CPU, and a bar standing at 0/2 for that long cannot be
+        told from a hung run."""
+        bar = tqdm(windows, desc=desc, disable=not self.progress)
+        calls = [0]
+
+        def count(*_: object) -> None:
+            calls[0] += 1
+            bar.set_postfix_str(f"decoder pass {calls[0]}", refresh=True)
+
+        handle = self.net.register_forward_hook(count) if self.progress else None
+        try:
+            yield bar
+        finally:
+            if handle is not None:
+                handle.remove()
+            bar.close()
 
     def upsample(self, frames: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """Double the frame rate by interpolation (GAIA-1 §5.2 steps 4-5): (b, N, …) → (b, 2N − 1, …)."""
@@ -132,11 +154,13 @@ class VideoDecodingPipeline:
         out[:, ::2] = frames
         known = (torch.arange(2 * n - 1) % 2 == 0).to(frames.device)
         h, w = self.net.token_grid
-        for start, stop in tqdm(interpolation_windows(2 * n - 1, self.frames), desc="upsample", disable=not self.progress):
-            t = stop - start
-            no_tokens = torch.zeros(b, t, h, w, dtype=torch.long, device=frames.device)
-            mask = known[start:stop].expand(b, -1)
-            out[:, start:stop] = self.window(no_tokens, torch.zeros_like(mask), out[:, start:stop], mask, generator)
+        with self.bar(interpolation_windows(2 * n - 1, self.frames), "upsample") as bar:
+            for start, stop in bar:
+                t = stop - start
+                no_tokens = torch.zeros(b, t, h, w, dtype=torch.long, device=frames.device)
+                mask = known[start:stop].expand(b, -1)
+                out[:, start:stop] = self.window(no_tokens, torch.zeros_like(mask), out[:, start:stop], mask,
+                                                 generator)
         return out
 
     def __call__(self, tokens: torch.Tensor, upsample: int = 2, generator: torch.Generator | None = None) -> DecodedVideo:

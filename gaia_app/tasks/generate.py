@@ -47,6 +47,7 @@ from gaia_app.tasks.showcase import showcase
 from gaia_app.tasks.gaia2_evaluate import gaia2_evaluate
 from gaia_app.tasks.gaia2_generate import GAIA2_MODES, gaia2_generate
 from gaia_app.tasks.rollout import ROLLOUT_MODES, rollout
+from gaia_app.tasks.settings import GENERATE_RULES, check_settings
 from gaia_app.utils.locks import folder_lock
 from gaia_app.utils.run_dir import atomic_write_text, save_resolved_config
 from gaia_app.viz.media import log_token_map, to_hwc_uint8
@@ -267,6 +268,7 @@ def run_gaia2(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
 def generate(cfg: DictConfig) -> dict[str, Any]:
     """Load `cfg.ckpt`, run `cfg.mode`, write results.json in the run dir and return the results."""
+    check_settings(cfg, GENERATE_RULES)
     L.seed_everything(cfg.seed, workers=True)
     run_dir = Path(cfg.paths.output_dir)
     save_resolved_config(cfg, run_dir)

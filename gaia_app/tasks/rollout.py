@@ -27,6 +27,7 @@ from omegaconf import DictConfig
 from gaia_app.data.transforms import to_uint8
 from gaia_app.data.video_io import write_video
 from gaia_app.diffusion.samplers import ImageVideoBlend
+from gaia_app.encoders.text import check_caption_fits
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline, Gaia1Rollout
 from gaia_app.pipelines.gaia1_inputs import (MODES, ContextClip, build_conditioning, context_for, describe_actions,
                                               future_frames)
@@ -76,10 +77,14 @@ def load_pipeline(cfg: DictConfig, video_decoder: bool | None = None) -> Gaia1Pi
         if given:
             raise ValueError(f"weights={cfg.weights} replaces the checkpoints; drop {', '.join(given)}")
         use_decoder = bool(cfg.get("video_decoder", True)) if video_decoder is None else video_decoder
-        return Gaia1Pipeline.from_weights(shipped_folder(cfg.weights), device=cfg.device, video_decoder=use_decoder,
-                                          decoder_steps=cfg.decoder_steps, decoder_blend=decoder_blend(cfg),
-                                          decoder_sampler=cfg.decoder_sampler, upsample=cfg.upsample, sampler=instantiate(cfg.token_sampler),
-                                          guidance=guidance)
+        pipeline = Gaia1Pipeline.from_weights(shipped_folder(cfg.weights), device=cfg.device, video_decoder=use_decoder,
+                                              decoder_steps=cfg.decoder_steps, decoder_blend=decoder_blend(cfg),
+                                              decoder_sampler=cfg.decoder_sampler, upsample=cfg.upsample,
+                                              sampler=instantiate(cfg.token_sampler), guidance=guidance)
+        if float(cfg.rate) != pipeline.rate:  # the weights fix the rate: a different one would be ignored
+            raise ValueError(f"rate={cfg.rate}: weights={cfg.weights} runs its world model at {pipeline.rate:g} Hz; "
+                             f"leave rate at {pipeline.rate:g}")
+        return pipeline
     for key in ("tokenizer_ckpt", "world_model_ckpt"):
         if not cfg.get(key):
             raise ValueError(f"mode={cfg.mode} needs {key}=<checkpoint> (and optionally decoder_ckpt=), or weights=")
@@ -165,6 +170,8 @@ def log_rollout(path: Path, rollout: Gaia1Rollout, context: ContextClip | None, 
 def rollout(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Run one rollout of `cfg.mode` and write its outputs (module docstring); returns the results."""
     pipeline = load_pipeline(cfg)
+    for setting in ("prompt", "negative_prompt"):
+        check_caption_fits(pipeline.text_encoder, cfg.get(setting), setting)
     frames = future_frames(cfg.seconds, pipeline.rate)
     context = context_for(cfg.mode, cfg.context.source, cfg.context.seed, cfg.context.index, cfg.context.folder,
                           cfg.context.frames, frames, pipeline.rate, *pipeline.image_size)

@@ -20,6 +20,7 @@ from gaia_app.lit.compile import CompileNet
 from gaia_app.lit.strategies import build_strategy
 from gaia_app.utils.run_dir import save_resolved_config
 from gaia_app.viz.rerun_logger import rerun_logger_of
+from gaia_app.tasks.settings import TRAIN_RULES, check_settings
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +102,7 @@ def check_sweep_launch(trainer: L.Trainer) -> None:
 
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Seed, save the resolved config, fit (optionally resuming), validate; return metrics and objects."""
+    check_settings(cfg, TRAIN_RULES)
     L.seed_everything(cfg.seed, workers=True)
     run_dir = Path(cfg.paths.output_dir)
     rank_zero_only(save_resolved_config)(cfg, run_dir)  # other ranks share the run dir (Lightning / torchrun)

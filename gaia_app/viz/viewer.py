@@ -37,9 +37,17 @@ def viewer_executable() -> str:
 def viewer_args(port: int, bind: str = LOOPBACK, headless: bool = False, hide_welcome_screen: bool = False,
                 memory_limit: str = "75%", server_memory_limit: str = "1GiB") -> list[str]:
     """The command line of a viewer serving gRPC on bind:port."""
+    check_port(port)
     args = [viewer_executable(), "--port", str(int(port)), "--bind", bind, "--memory-limit", memory_limit,
             "--server-memory-limit", server_memory_limit, "--expect-data-soon"]
     return args + (["--headless"] if headless else []) + (["--hide-welcome-screen"] if hide_welcome_screen else [])
+
+
+def check_port(port: object, setting: str = "viewer port") -> int:
+    """A TCP port number in [1, 65535], or a ValueError naming the setting (not a later "viewer exited" error)."""
+    if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
+        raise ValueError(f"{setting} {port!r}: expected a TCP port number in [1, 65535]")
+    return port
 
 
 def connect_host(bind: str) -> str:
@@ -49,6 +57,7 @@ def connect_host(bind: str) -> str:
 
 def port_open(host: str, port: int, timeout: float = 0.5) -> bool:
     """True when something accepts TCP connections on host:port."""
+    check_port(port)
     try:
         with socket.create_connection((host, port), timeout=timeout):
             return True

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import re
 from collections.abc import Iterator
 from itertools import islice
@@ -95,6 +96,7 @@ def import_dashcam(
     `steering_ratio` for a steering-angle log). It is checked against every frame before any clip is written.
     """
     check_camera_name(camera, "--camera")
+    check_import_settings(clip_len_s, fps, height, width, max_gap, wheelbase, steering_ratio)
     video = Path(video_path)
     info = video_info(video)
     num_frames = info.num_frames or count_intact_packets(video)  # some containers do not say
@@ -127,6 +129,19 @@ def import_dashcam(
             paths.append(path)
     log.info("%s: wrote %d clip(s) of %d frames to %s", video, len(paths), per_clip, out_root)
     return paths
+
+
+def check_import_settings(clip_len_s: float | None, fps: float | None, height: int | None, width: int | None,
+                          max_gap: float, wheelbase: float | None, steering_ratio: float) -> None:
+    """Each option in its range (ValueError naming the option, the value and the range) before anything is read."""
+    positive = {"--clip-seconds": clip_len_s, "--fps": fps, "--max-gap": max_gap, "--wheelbase": wheelbase,
+                "--steering-ratio": steering_ratio}
+    for option, value in positive.items():
+        if value is not None and not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            raise ValueError(f"{option} {value!r}: expected a positive finite number")
+    for option, value in {"--height": height, "--width": width}.items():
+        if value is not None and not (isinstance(value, int) and 8 <= value <= 8192):
+            raise ValueError(f"{option} {value!r}: expected an integer number of pixels in [8, 8192]")
 
 
 class _Counted:

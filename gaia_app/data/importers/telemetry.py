@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gaia_app.data.actions import curvature_from_poses, curvature_from_steering, curvature_from_yaw_rate, speed_from_poses
+from gaia_app.data.actions import (LABEL_RANGES, curvature_from_poses, curvature_from_steering,
+                                   curvature_from_yaw_rate, speed_from_poses)
 from gaia_app.data.clip import ClipError
 
 EARTH_RADIUS_M = 6_371_000.0
@@ -142,6 +143,12 @@ def actions_at(log: Telemetry, frame_times: np.ndarray, max_gap_s: float = 0.5, 
     if not np.all(np.isfinite(actions[near])):
         row = int(near[~np.all(np.isfinite(actions[near]), axis=1)][0])
         raise ClipError(f"{log.path}: record {row + 1} gives a non-finite speed or curvature {actions[row].tolist()}")
+    for channel, (name, limit) in enumerate(LABEL_RANGES.items()):  # what every clip reader accepts
+        outside = near[np.abs(actions[near, channel]) > limit]
+        if len(outside):
+            row = int(outside[0])
+            raise ClipError(f"{log.path}: record {row + 1} gives {name} {actions[row, channel]:g}, outside "
+                            f"[-{limit:g}, {limit:g}] {'m/s' if name == 'speed' else '1/m'} (wrong units?)")
     return np.stack([np.interp(frame_times, log.t, actions[:, k]) for k in range(2)], axis=1).astype(np.float32)
 
 
