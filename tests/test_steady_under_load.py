@@ -48,3 +48,37 @@ def test_decoding_shows_each_decoder_pass_not_only_windows(capsys) -> None:
     pipeline.decoder.decode(tokens, torch.Generator().manual_seed(0))
     err = capsys.readouterr().err
     assert "decoder pass 3" in err  # one window of 3 DDIM steps, counted as it runs
+
+
+def test_the_governor_follows_load_that_appears_later(monkeypatch) -> None:
+    """A run alone on 2 CPUs (2 threads); another process then keeps one CPU busy for 10 s: the next tick moves the
+    run to 1 thread; when it is gone again, back to 2. Its own busy time does not count as another's."""
+    tck = threads.os.sysconf("SC_CLK_TCK")
+    monkeypatch.setattr(threads, "cpu_quota", lambda: 2)
+    governor = threads.ThreadGovernor()
+    governor.enabled = True
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        # 10 s: the machine was busy 2 × 10 CPU-seconds, this process used 10 of them → another used one CPU
+        governor.mark = (0.0, (0, 0), 0.0)
+        monkeypatch.setattr(governor, "sample", lambda: (10.0, (20 * tck, 0), 10.0))
+        monkeypatch.setattr(threads.time, "monotonic", lambda: 10.0)
+        assert governor.tick() == 1 and torch.get_num_threads() == 1
+        # the next 10 s: busy 10 CPU-seconds, all of them this process's own → nobody else: 2 threads again
+        monkeypatch.setattr(governor, "sample", lambda: (20.0, (40 * tck, 10 * tck), 20.0))
+        monkeypatch.setattr(threads.time, "monotonic", lambda: 20.0)
+        assert governor.tick() == 2 and torch.get_num_threads() == 2
+        monkeypatch.setattr(threads.time, "monotonic", lambda: 25.0)
+        assert governor.tick() is None  # between counts: a clock read, nothing else
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_a_configured_thread_count_is_never_moved(monkeypatch) -> None:
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    threads.apply_thread_policy(None)
+    assert not threads.GOVERNOR.enabled
+    threads.apply_thread_policy(2)
+    assert not threads.GOVERNOR.enabled
+    torch.set_num_threads(1)

@@ -26,6 +26,7 @@ from tqdm.auto import tqdm
 
 from gaia_app.diffusion.guidance import ClassifierFreeGuidance
 from gaia_app.nn.attention import KVCache
+from gaia_app.utils import threads
 
 
 class StepConditions(Protocol):
@@ -260,6 +261,7 @@ class SamplingSession:
     def next_frame(self, scales: torch.Tensor | None = None) -> torch.Tensor:
         """Sample the next step's n tokens → (b, n). scales (n,): guidance per token (a one-frame rollout's
         `guidance.scales(1, n)[0]` when None)."""
+        threads.tick()  # follow the load other processes put on the CPUs (gaia_app/utils/threads.py)
         net, (b, known, n) = self.net, self.tokens.shape
         if known >= net.frames:  # keep the last T − 1 steps: the window then ends with the step being sampled
             self.forget(known - (net.frames - 1))

@@ -20,6 +20,8 @@ from collections.abc import Callable
 import torch
 from tqdm.auto import tqdm
 
+from gaia_app.utils import threads
+
 Velocity = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 
@@ -121,6 +123,7 @@ class FlowSampler:
         x = noise
         b = noise.shape[0]
         for i in tqdm(range(start, self.steps), desc="flow", disable=not self.progress, leave=False):
+            threads.tick()  # follow the load other processes put on the CPUs (gaia_app/utils/threads.py)
             t0, t1 = taus[i].expand(b), taus[i + 1].expand(b)
             dt = float(taus[i + 1] - taus[i])
             v0 = velocity(x, t0)

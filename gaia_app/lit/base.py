@@ -10,6 +10,8 @@ import torch
 from torch import nn
 from torch.distributed.fsdp import FullyShardedDataParallel
 
+from gaia_app.utils import threads
+
 
 # layers whose weight matrices AdamW decays; everything else (embeddings, positions, null tokens, action
 # projections, norms, biases, bare Parameters) is left alone: decaying a learned null token or a rarely-used
@@ -49,6 +51,10 @@ class GaiaModule(L.LightningModule):
         """Build the network once (the hook runs at every stage and must be idempotent)."""
         if self.net is None:
             self.net = self.net_factory()
+
+    def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
+        """Follow the load other processes put on the CPUs (gaia_app/utils/threads.py; a clock read between counts)."""
+        threads.tick()
 
     def clip_gradients(self, optimizer: torch.optim.Optimizer, gradient_clip_val: float | None = None,
                        gradient_clip_algorithm: str | None = None) -> None:

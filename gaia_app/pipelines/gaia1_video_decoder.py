@@ -24,6 +24,7 @@ from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule
 from gaia_app.diffusion.samplers import ImageVideoBlend
 from gaia_app.diffusion.video_sampling import sample_window
 from gaia_app.models.gaia1.video_decoder import VideoDecoder
+from gaia_app.utils import threads
 
 
 @dataclass
@@ -100,6 +101,7 @@ class VideoDecodingPipeline:
     def window(self, tokens: torch.Tensor, token_mask: torch.Tensor, context: torch.Tensor, context_mask: torch.Tensor,
                generator: torch.Generator | None = None) -> torch.Tensor:
         """One window with this pipeline's sampler and blend (see `sample_window`)."""
+        threads.tick()  # follow the load other processes put on the CPUs (gaia_app/utils/threads.py)
         rendered = self.render_tokens(tokens) if self.render_tokens is not None else None
         return sample_window(self.net, self.schedule, self.sampler, tokens, token_mask, context, context_mask,
                              self.blend, generator, rendered=rendered)
