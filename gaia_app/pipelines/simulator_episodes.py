@@ -7,7 +7,7 @@ b = 1, `VectorDrivingSimulator` (pipelines/vector_simulator.py) one with b = N. 
 session (`WorldModelRolloutPipeline.session`, its KV cache kept across steps), so a step is one batched forward per
 image token for all of them. Each episode keeps its own token generator: `RowwisePicker` draws row i's token
 with generator i exactly as a batch-1 session seeded alike would, so an episode's draws do not depend on which
-other episodes share its batch (tests/test_vector_simulator.py).
+other episodes share its batch (its logits do, in the last float bits: pipelines/vector_simulator.py).
 """
 
 from __future__ import annotations
