@@ -32,25 +32,31 @@ from gaia_app.diffusion.ar_sampling import AutoregressiveSampler
 from gaia_app.models.gaia1.world_model import WorldModel
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.simulator import DrivingSimulator
+from gaia_app.pipelines.simulator_episodes import EpisodeBatch
 from gaia_app.utils.shipped import shipped_folder
 
 REAL_TIME_HZ = 6.25
 
 
-class WindowPerStep(DrivingSimulator):
+class WindowPerStep(EpisodeBatch):
     """The simulator before sessions: every step samples its frame through a fresh window (re-prefill). Unprompted
     only (the episodes here have no prompt)."""
 
-    def advance(self, action: np.ndarray) -> np.ndarray:
-        self.actions.append(action)
-        keep = min(len(self.tokens), int(self.pipeline.world_model.frames) - 1)
-        context = self.tokens[len(self.tokens) - keep:]
-        lead = min(1, len(self.tokens) - keep)
-        actions = torch.from_numpy(np.stack(self.actions[len(self.actions) - keep - 1 - lead:]))[None]
-        sampled, _ = self.pipeline.sample_batch(context[None], 1, None, actions, None, 1, self.generator, lead)
-        self.tokens = torch.cat([self.tokens, sampled[0, -1:].to(self.tokens.device)])
-        self.last_frame = self.observe(self.tokens[-1])
-        return self.last_frame
+    def advance(self, actions: np.ndarray) -> torch.Tensor:
+        self.actions.append(np.asarray(actions, np.float32))
+        keep = min(self.tokens.shape[1], int(self.pipeline.world_model.frames) - 1)
+        context = self.tokens[:, self.tokens.shape[1] - keep:]
+        lead = min(1, self.tokens.shape[1] - keep)
+        steps = torch.from_numpy(np.stack(self.actions[len(self.actions) - keep - 1 - lead:], axis=1))
+        sampled, _ = self.pipeline.sample_batch(context, 1, None, steps, None, 1, self.generators[0], lead)
+        self.tokens = torch.cat([self.tokens, sampled[:, -1:].to(self.tokens.device)], dim=1)
+        return sampled[:, -1]
+
+
+def window_per_step(pipeline: Gaia1Pipeline) -> DrivingSimulator:
+    env = DrivingSimulator(pipeline)
+    env.episodes = WindowPerStep(pipeline, env.context_frames)
+    return env
 
 
 def episode_rate(env: DrivingSimulator, steps: int, seed: int) -> float:
@@ -73,7 +79,7 @@ def rope_pipeline(shipped: Gaia1Pipeline) -> Gaia1Pipeline:
 
 
 def paths(pipeline: Gaia1Pipeline, full: bool) -> dict[str, DrivingSimulator]:
-    envs = {"session": DrivingSimulator(pipeline), "window per step": WindowPerStep(pipeline)}
+    envs = {"session": DrivingSimulator(pipeline), "window per step": window_per_step(pipeline)}
     if full:
         uncached = Gaia1Pipeline(pipeline.tokenizer, pipeline.world_model, pipeline.image_size,
                                  sampler=AutoregressiveSampler(pipeline.rollouts.sampler.picker, use_cache=False),

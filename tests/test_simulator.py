@@ -24,7 +24,8 @@ def test_spaces_and_episode_follow_the_gymnasium_api(pipeline: Gaia1Pipeline) ->
     env = DrivingSimulator(pipeline, context_frames=4, max_steps=3)
     obs, info = env.reset(seed=0)
     assert env.observation_space.contains(obs) and obs.shape == (64, 112, 3) and info["step"] == 0
-    assert env.action_space.shape == (2,) and env.action_space.contains(env.action_space.sample(np.random.default_rng(0)))
+    env.action_space.seed(0)
+    assert env.action_space.shape == (2,) and env.action_space.contains(env.action_space.sample())
     for k in range(3):
         obs, reward, terminated, truncated, info = env.step([10.0, 0.02])
         assert env.observation_space.contains(obs) and reward == 0.0 and not terminated
@@ -148,14 +149,17 @@ def test_steps_build_no_autograd_graph_and_keep_their_streams(pipeline: Gaia1Pip
 
 
 def test_bad_actions_are_named(pipeline: Gaia1Pipeline) -> None:
+    """A few cases; the full table of refusals is in tests/test_simulator_gym.py."""
     env = DrivingSimulator(pipeline, max_steps=2)
     with pytest.raises(RuntimeError, match="reset"):
         env.step([5.0, 0.0])
     env.reset(seed=0)
     for action, match in (([float("nan"), 0.0], "finite"), ([1.0, 2.0, 3.0], r"shape \(3,\)"),
-                          ([90.0, 0.0], r"speed must lie in \[0, 70\] m/s"), (["fast", 0.0], "two numbers")):
+                          ([90.0, 0.0], r"speed must lie in \[0, 70\] m/s")):
         with pytest.raises(ValueError, match=match):
             env.step(action)
+    with pytest.raises(TypeError, match="two numbers"):
+        env.step(["fast", 0.0])
     with pytest.raises(ValueError, match="context='none' .* give prompt"):
         env.reset(options={"context": "none"})
     with pytest.raises(ValueError, match="reset options"):
@@ -170,11 +174,55 @@ def test_an_episode_can_start_from_a_prompt_alone(pipeline: Gaia1Pipeline) -> No
     assert len(env.tokens) == 2
 
 
-def test_the_controller_and_the_trajectory() -> None:
-    from gaia_app.tasks.drive import pose_step, speed_command
+def test_the_filter_averages_out_probe_noise() -> None:
+    """Noisy probe readings (std 2.5 m/s) around a constant true speed of 12 m/s, the command constant: over the
+    last 100 of 200 steps the filter's estimate is off by less than a third of what the raw readings are, and a
+    change of the command moves the estimate by that change before any reading confirms it (the plant model)."""
+    from gaia_app.tasks.drive import SpeedFilter
 
-    assert speed_command(8.0, 12.0, 0.5, 1.0) == 9.0 and speed_command(8.0, 12.0, 0.1, 1.0) == pytest.approx(8.4)
-    assert speed_command(0.5, 0.0, 1.0, 2.0) == 0.0  # never a negative speed
+    rng = np.random.default_rng(0)
+    readings = 12.0 + 2.5 * rng.standard_normal(200)
+    speed_filter = SpeedFilter(process_noise=0.3, probe_noise=2.5)
+    speed_filter.start(8.0)  # the context's speed, 4 m/s off
+    estimates = np.array([speed_filter.update(0.0, z) for z in readings])
+    raw_error, filtered_error = np.abs(readings[100:] - 12).mean(), np.abs(estimates[100:] - 12).mean()
+    assert filtered_error < raw_error / 3, (filtered_error, raw_error)
+    before = speed_filter.estimate
+    after = speed_filter.update(2.0, before + 2.0)  # the reading agrees with the predicted speed
+    assert after == pytest.approx(before + 2.0)
+
+
+def test_the_controller_commands_from_the_estimate_not_the_raw_reading() -> None:
+    """An outlier reading (40 m/s while 12 is held) moves the filtered controller's command by at most one step's
+    change, computed from the filter's estimate; the previous law followed the raw reading to about 40 m/s."""
+    from gaia_app.tasks.drive import SpeedFilter, SpeedKeeper, speed_command
+
+    keepers = {name: SpeedKeeper(12.0, 0.5, 0.48, name, SpeedFilter(0.3, 2.5)) for name in ("filtered", "previous")}
+    for keeper in keepers.values():
+        keeper.start(12.0)
+        for _ in range(20):
+            keeper.next(12.0)
+    filtered = keepers["filtered"]
+    command, estimate = filtered.command, filtered.next(40.0)
+    assert 12.0 < estimate < 12.0 + 0.25 * 28  # a settled gain takes a small share of the outlier
+    assert filtered.command == speed_command(command, estimate, 12.0, 0.5, 0.48) and abs(filtered.command - 12) <= 0.48 + 1e-9
+    keepers["previous"].next(40.0)
+    assert keepers["previous"].command == pytest.approx(40.0 - 0.48)
+    assert speed_command(8.0, 12.0, 12.0, 0.5, 1.0) == 8.0  # on target: the command keeps what it has
+    assert speed_command(8.0, 10.0, 12.0, 0.5, 2.0) == 9.0 and speed_command(8.0, 4.0, 12.0, 0.5, 1.0) == 9.0
+    assert speed_command(0.5, 20.0, 0.0, 1.0, 2.0) == 0.0  # never a negative speed
+    open_loop = SpeedKeeper(12.0, 0.5, 0.48, "open-loop")
+    open_loop.start(6.0)
+    for reading, command in ((0.0, 6.48), (50.0, 6.96)):  # a ramp to the target: the readings play no part
+        open_loop.next(reading)
+        assert open_loop.command == pytest.approx(command)
+    with pytest.raises(ValueError, match="controller='pid'"):
+        SpeedKeeper(12.0, 0.5, 0.48, "pid")
+
+
+def test_the_trajectory() -> None:
+    from gaia_app.tasks.drive import pose_step
+
     pose = np.zeros(3)
     for _ in range(100):  # one full circle of radius 20 m at 10 m/s
         pose = pose_step(pose, 10.0, 1 / 20, 2 * np.pi * 20 / 10 / 100)
@@ -193,9 +241,33 @@ def test_closed_loop_drive_writes_its_recording_and_record(tmp_path) -> None:
     results = main(["--seconds", "1", "--out", str(tmp_path), "--target-speed", "10"])
     record = json.loads((tmp_path / "drive.json").read_text())
     assert len(record["steps"]) == len(results["steps"]) == 7 and record["target_speed"] == 10.0
-    assert all(0 <= s["command"][0] <= 70 and np.isfinite(s["estimated_speed"]) for s in record["steps"])
+    assert record["controller"] == "filtered" and np.isfinite(record["probed_speed_error"])
+    assert all(0 <= s["command"][0] <= 70 and np.isfinite(s["estimated_speed"]) and np.isfinite(s["probed_speed"])
+               for s in record["steps"])
     entities = {c.entity_path for c in RrdReader(str(tmp_path / "drive.rrd")).stream().collect().stream().to_chunks()}
-    assert {"/camera", "/speed/commanded", "/speed/estimated", "/trajectory"} <= entities
+    assert {"/camera", "/speed/commanded", "/speed/probed", "/speed/estimated", "/trajectory"} <= entities
+
+
+def test_the_seed_evaluation_pairs_every_controller(tmp_path) -> None:
+    """--seeds: every controller on every seed (short episodes here), the mean over seeds and the ratio to the
+    held speed's error with bootstrap intervals, in drive_seeds.json."""
+    import json
+
+    from gaia_app.tasks.drive import CONTROLLERS, main
+    from gaia_app.tasks.drive_seeds import parse_seeds
+
+    assert parse_seeds("101-103,7") == [101, 102, 103, 7]
+    for bad in ("a-b", "3,3", "-1", ""):
+        with pytest.raises(ValueError, match="--seeds="):
+            parse_seeds(bad)
+    main(["--seconds", "0.5", "--seeds", "1-2", "--out", str(tmp_path)])
+    result = json.loads((tmp_path / "drive_seeds.json").read_text())
+    assert result["seeds"] == [1, 2] and set(result["summary"]) == set(CONTROLLERS)
+    none = result["summary"]["none"]
+    assert none["ratio_to_none"]["mean"] == 1.0 and none["probed_speed_error"]["n"] == 2
+    assert none["command_error"]["mean"] > 0 and all(len(v) == 2 for v in result["per_seed"].values())
+    with pytest.raises(SystemExit):
+        main(["--gain", "1.5"])
 
 
 def test_closed_loop_drive_captures_its_live_view(tmp_path, monkeypatch) -> None:

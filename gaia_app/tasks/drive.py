@@ -4,15 +4,24 @@
     python -m gaia_app.tasks.drive --viewer         # also stream live to a Rerun viewer listening on 127.0.0.1
     python -m gaia_app.tasks.drive --screenshot docs/gallery/simulator_live.png   # stream to a headless viewer, capture it
 
-The controller sees only the generated frames: the shipped inverse-dynamics probe (the one the controllability
-table measures with) estimates the ego speed from each new pair of frames, a proportional controller turns the
-error against `--target-speed` into the next speed command (gain `--gain` per step, at most ±`--max-accel` m/s²),
-and the curvature command holds `--curvature`. Frames, the estimated and commanded speed, the trajectory (speed
-and curvature integrated at the world model's rate) go to Rerun: always drive.rrd in --out and, with --viewer, live
-to a viewer this command starts on 127.0.0.1 (gaia_app/viz/viewer.py; the SDK's own spawn would listen on every
-interface). With --screenshot the stream goes live to a headless viewer instead (Mesa's software Vulkan is enough
-without a GPU, gaia_app/viz/screenshot.py) and its view at the end of the episode is written as a PNG. The episode's
-numbers go to drive.json.
+The controller sees only the generated frames. After every step the shipped inverse-dynamics probe (the one the
+controllability table measures with) reads the ego speed from the last pair of frames. Its readings are noisy
+(about ±2.5 m/s from step to step on the shipped weights), so they are not used as the state directly: a Kalman
+filter (`SpeedFilter`) predicts the speed by adding each change of the speed command (a model of the plant: the
+world model drives what it is told to), then corrects the prediction by the reading with a gain that settles
+near 0.1 (`--process-noise`, `--probe-noise`). An integral controller (`SpeedKeeper`) moves the speed command by
+`--gain` × (target − estimate) per step, at most `--max-accel` m/s² (the world model was trained on changes of
+about 0.4 m/s per step); the curvature command holds `--curvature`. `--controller` picks another policy for
+comparison: `previous` (the proportional law on the raw probe reading this module used before), `open-loop`
+(the same integral law on the commands alone: a ramp to the target, the probe ignored) or `none` (the context's
+speed held). `--seeds` runs every policy on several sampler seeds side by side (tasks/drive_seeds.py).
+
+Frames, the estimated and commanded speed, the trajectory (speed and curvature integrated at the world model's
+rate) go to Rerun: always drive.rrd in --out and, with --viewer, live to a viewer this command starts on
+127.0.0.1 (gaia_app/viz/viewer.py; the SDK's own spawn would listen on every interface). With --screenshot the
+stream goes live to a headless viewer instead (Mesa's software Vulkan is enough without a GPU,
+gaia_app/viz/screenshot.py) and its view at the end of the episode is written as a PNG. The episode's numbers go
+to drive.json.
 """
 
 from __future__ import annotations
@@ -20,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -51,10 +61,85 @@ def estimated_speed(probe: torch.nn.Module, previous: np.ndarray, frame: np.ndar
     return float(probed_actions(probe, pair, 1)[0, 0, 0])
 
 
-def speed_command(current: float, target: float, gain: float, max_step: float) -> float:
-    """Proportional control of the commanded speed: the next command moves towards the target by gain × error,
-    at most max_step (m/s per step), never below 0."""
-    return max(0.0, current + float(np.clip(gain * (target - current), -max_step, max_step)))
+CONTROLLERS = ("filtered", "previous", "open-loop", "none")
+
+
+@dataclass
+class SpeedFilter:
+    """Kalman filter of the ego speed (m/s) with the speed command's change as its input.
+
+    Plant model: from one step to the next the rendered speed changes by the change of the command, plus process
+    noise of std `process_noise` (m/s per step: what the world model does on its own); the probe reads the speed
+    with noise of std `probe_noise`. Predict: x ← x + Δu, P ← P + q²; correct: K = P / (P + r²), x ← x + K (z − x),
+    P ← (1 − K) P. With q ≪ r the gain settles near q / r, so a reading moves the estimate by a small share of its
+    error: the probe corrects the slow drift between command and picture, and its step-to-step noise is averaged
+    out instead of being fed back into the command."""
+
+    process_noise: float = 0.3
+    probe_noise: float = 2.5
+    estimate: float = 0.0
+    variance: float = 0.0
+
+    def start(self, speed: float) -> None:
+        """Start from a known speed (the context's) as uncertain as one probe reading."""
+        self.estimate, self.variance = float(speed), self.probe_noise**2
+
+    def update(self, command_change: float, reading: float) -> float:
+        """One step: the command changed by `command_change` (m/s), the probe read `reading` → the estimate."""
+        self.estimate += command_change
+        self.variance += self.process_noise**2
+        gain = self.variance / (self.variance + self.probe_noise**2)
+        self.estimate += gain * (reading - self.estimate)
+        self.variance *= 1.0 - gain
+        return self.estimate
+
+
+def speed_command(command: float, estimate: float, target: float, gain: float, max_step: float) -> float:
+    """Integral control of the commanded speed: the command moves by gain × (target − estimate), at most max_step
+    (m/s per step), never below 0. The command keeps what earlier corrections added, so a persistent offset between
+    command and picture is worked off."""
+    return max(0.0, command + float(np.clip(gain * (target - estimate), -max_step, max_step)))
+
+
+def previous_command(reading: float, target: float, gain: float, max_step: float) -> float:
+    """The law this module used before the filter: the raw reading moved towards the target (for comparison)."""
+    return max(0.0, reading + float(np.clip(gain * (target - reading), -max_step, max_step)))
+
+
+@dataclass
+class SpeedKeeper:
+    """Chooses each step's speed command from the probe's reading (module docstring). controller: one of
+    CONTROLLERS; max_step: m/s per step."""
+
+    target: float
+    gain: float
+    max_step: float
+    controller: str = "filtered"
+    filter: SpeedFilter = field(default_factory=SpeedFilter)
+    command: float = 0.0
+    applied: float = 0.0  # the command the newest frame was rendered under
+
+    def __post_init__(self) -> None:
+        if self.controller not in CONTROLLERS:
+            raise ValueError(f"controller={self.controller!r}: expected one of {CONTROLLERS}")
+
+    def start(self, speed: float) -> None:
+        """A new episode from the context's speed (m/s): that speed is the first command."""
+        self.command = self.applied = float(speed)
+        self.filter.start(speed)
+
+    def next(self, reading: float) -> float:
+        """The probe's reading of the frame just rendered under `self.command` → the speed estimate; `self.command`
+        becomes the next step's command."""
+        change, self.applied = self.command - self.applied, self.command
+        estimate = self.filter.update(change, reading)  # the filter follows every policy's commands
+        if self.controller == "filtered":
+            self.command = speed_command(self.command, estimate, self.target, self.gain, self.max_step)
+        elif self.controller == "open-loop":  # the plant model alone: as if each command were met
+            self.command = speed_command(self.command, self.command, self.target, self.gain, self.max_step)
+        elif self.controller == "previous":
+            self.command = previous_command(reading, self.target, self.gain, self.max_step)
+        return estimate
 
 
 def pose_step(pose: np.ndarray, speed: float, curvature: float, dt: float) -> np.ndarray:
@@ -69,13 +154,14 @@ def pose_step(pose: np.ndarray, speed: float, curvature: float, dt: float) -> np
                      y - radius * (math.cos(heading + turn) - math.cos(heading)), heading + turn])
 
 
-def log_step(rec: rr.RecordingStream, step: int, time_s: float, frame: np.ndarray, estimate: float | None,
-             command: list[float], trail: list[np.ndarray]) -> None:
+def log_step(rec: rr.RecordingStream, step: int, time_s: float, frame: np.ndarray, reading: float | None,
+             estimate: float | None, command: list[float], trail: list[np.ndarray]) -> None:
     rec.set_time("step", sequence=step)
     rec.set_time("time", duration=time_s)
     rec.log("/camera", rr.Image(frame))
     rec.log("/speed/commanded", rr.Scalars(command[0]))
-    if estimate is not None:
+    if reading is not None:
+        rec.log("/speed/probed", rr.Scalars(reading))
         rec.log("/speed/estimated", rr.Scalars(estimate))
     rec.log("/curvature/commanded", rr.Scalars(command[1]))
     rec.log("/trajectory", rr.LineStrips3D([[[p[0], p[1], 0.0] for p in trail]]))
@@ -83,58 +169,97 @@ def log_step(rec: rr.RecordingStream, step: int, time_s: float, frame: np.ndarra
 
 def drive_blueprint() -> rrb.Blueprint:
     """The camera beside the commanded and estimated speed, the curvature command and the trajectory."""
-    series = rrb.Vertical(rrb.TimeSeriesView(origin="/speed", name="speed (m/s): commanded, estimated from pixels"),
+    series = rrb.Vertical(rrb.TimeSeriesView(origin="/speed", name="speed (m/s): commanded, probed, filtered"),
                           rrb.TimeSeriesView(origin="/curvature", name="curvature command (1/m)"),
                           rrb.Spatial3DView(origin="/trajectory", name="trajectory (commands integrated)"))
     return rrb.Blueprint(rrb.Horizontal(rrb.Spatial2DView(origin="/camera", name="camera (generated)"), series,
                                         column_shares=[3, 2]), collapse_panels=True)
 
 
-def drive(env: DrivingSimulator, probe: torch.nn.Module, rec: rr.RecordingStream, steps: int, target: float,
-          curvature: float, gain: float, max_step: float, seed: int) -> dict[str, Any]:
-    """Run one closed-loop episode; returns its per-step record."""
+def drive(env: DrivingSimulator, probe: torch.nn.Module, rec: rr.RecordingStream | None, steps: int,
+          keeper: SpeedKeeper, curvature: float, seed: int, progress: bool = True) -> dict[str, Any]:
+    """Run one closed-loop episode (logged to `rec` unless None); returns its per-step record."""
     frame, info = env.reset(seed=seed)
     dt = 1.0 / env.pipeline.rate
-    command = float(env.actions[-1][0])
+    keeper.start(float(env.actions[-1][0]))
     pose, trail, record = np.zeros(3), [np.zeros(3)], []
-    log_step(rec, 0, 0.0, frame, None, [command, curvature], trail)
-    for step in tqdm(range(1, steps + 1), desc="drive", unit="step"):
-        action = [command, curvature]
+    if rec is not None:
+        log_step(rec, 0, 0.0, frame, None, None, [keeper.command, curvature], trail)
+    for step in tqdm(range(1, steps + 1), desc="drive", unit="step", disable=not progress):
+        action = [keeper.command, curvature]
         previous = frame
         frame, _, _, truncated, info = env.step(action)
-        estimate = estimated_speed(probe, previous, frame)
+        reading = estimated_speed(probe, previous, frame)
+        estimate = keeper.next(reading)
         pose = pose_step(pose, action[0], curvature, dt)
         trail.append(pose)
-        log_step(rec, step, info["time_s"], frame, estimate, action, trail)
-        record.append({"step": step, "time_s": info["time_s"], "command": action, "estimated_speed": estimate})
-        command = speed_command(estimate, target, gain, max_step * dt)
+        if rec is not None:
+            log_step(rec, step, info["time_s"], frame, reading, estimate, action, trail)
+        record.append({"step": step, "time_s": info["time_s"], "command": action, "probed_speed": reading,
+                       "estimated_speed": estimate})
         if truncated:
             break
-    estimates = np.array([r["estimated_speed"] for r in record])
-    return {"steps": record, "target_speed": target, "mean_abs_speed_error_last_half":
-            float(np.abs(estimates[len(estimates) // 2:] - target).mean()), "final_pose": pose.tolist()}
+    return {"steps": record, "target_speed": keeper.target, "controller": keeper.controller, "seed": seed,
+            **speed_errors(record, keeper.target), "final_pose": pose.tolist()}
 
 
-def main(argv: list[str] | None = None) -> dict[str, Any]:
+def speed_errors(record: list[dict[str, Any]], target: float, window_s: float = 5.0) -> dict[str, float]:
+    """Over the steps of the last `window_s` seconds: mean |probed − target| (the score), |mean probed − target|
+    (the part a controller can remove; the probe's step-to-step noise stays) and mean |command − target|."""
+    last = [r for r in record if r["time_s"] > record[-1]["time_s"] - window_s]
+    probed = np.array([r["probed_speed"] for r in last])
+    commands = np.array([r["command"][0] for r in last])
+    return {"probed_speed_error": float(np.abs(probed - target).mean()),
+            "probed_mean_offset": float(abs(probed.mean() - target)),
+            "command_error": float(np.abs(commands - target).mean()), "window_steps": len(last)}
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--weights", default="gaia1", help="a weights folder (shipped name or path) with probes/")
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--target-speed", type=float, default=12.0, help="m/s")
     parser.add_argument("--curvature", type=float, default=0.0, help="1/m, held (positive: left)")
-    parser.add_argument("--gain", type=float, default=0.5, help="share of the speed error corrected per step")
+    parser.add_argument("--controller", choices=CONTROLLERS, default="filtered")
+    parser.add_argument("--gain", type=float, default=0.5, help="share of the estimated speed error added to the "
+                        "command per step (previous: corrected per step)")
     parser.add_argument("--max-accel", type=float, default=3.0, help="m/s² at most between commands")
+    parser.add_argument("--process-noise", type=float, default=0.3, help="filter: m/s per step the world drifts")
+    parser.add_argument("--probe-noise", type=float, default=2.5, help="filter: m/s std of one probe reading")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seeds", help="evaluate every controller side by side on these sampler seeds, e.g. "
+                        "101-116 or 1,2,3 (tasks/drive_seeds.py); no recording")
     parser.add_argument("--out", type=Path, default=Path("outputs/drive"))
     parser.add_argument("--viewer", action="store_true", help="stream live to a Rerun viewer on 127.0.0.1")
     parser.add_argument("--viewer-port", type=int, default=9876)
     parser.add_argument("--screenshot", type=Path, help="stream to a headless viewer and save its final view (PNG)")
     args = parser.parse_args(argv)
-    folder = shipped_folder(args.weights)
+    for name in ("seconds", "max_accel", "process_noise", "probe_noise"):
+        if not math.isfinite(getattr(args, name)) or getattr(args, name) <= 0:
+            parser.error(f"--{name.replace('_', '-')}={getattr(args, name)}: expected a finite number > 0")
+    if not 0 <= args.gain <= 1:
+        parser.error(f"--gain={args.gain}: expected a share in [0, 1]")
+    if not 0 <= args.target_speed <= 70:
+        parser.error(f"--target-speed={args.target_speed}: expected m/s in [0, 70] (the simulator's speed range)")
+    return args
+
+
+def make_keeper(args: argparse.Namespace, rate: float, controller: str | None = None) -> SpeedKeeper:
+    """The speed controller the arguments describe (`controller` overrides --controller)."""
+    return SpeedKeeper(args.target_speed, args.gain, args.max_accel / rate, controller or args.controller,
+                       SpeedFilter(args.process_noise, args.probe_noise))
+
+
+def load_world(weights: str) -> tuple[Gaia1Pipeline, torch.nn.Module]:
+    """The pipeline (tokenizer observations) and the speed probe of a weights folder."""
+    folder = shipped_folder(weights)
     pipeline = Gaia1Pipeline.from_weights(folder, video_decoder=False)
     dynamics, _, _ = load_probes(folder / "probes", tuple(pipeline.image_size), float(pipeline.rate))
-    steps = max(1, math.ceil(args.seconds * pipeline.rate))
-    env = DrivingSimulator(pipeline, max_steps=steps)
-    args.out.mkdir(parents=True, exist_ok=True)
+    return pipeline, dynamics.eval()
+
+
+def open_recording(args: argparse.Namespace) -> tuple[rr.RecordingStream, Any]:
+    """drive.rrd in --out, plus the live or headless viewer asked for → (recording, headless viewer or None)."""
     rec = rr.RecordingStream("gaia_app", recording_id=f"drive-{args.seed}")
     sinks: list[Any] = [rr.FileSink(str(args.out / "drive.rrd"))]
     headless = None
@@ -152,9 +277,22 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             print(f"no live viewer ({error}); writing {args.out / 'drive.rrd'} only")
     rec.set_sinks(*sinks)
     rec.send_blueprint(drive_blueprint())
+    return rec, headless
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    args = parse_args(argv)
+    pipeline, probe = load_world(args.weights)
+    steps = max(1, math.ceil(args.seconds * pipeline.rate))
+    env = DrivingSimulator(pipeline, max_steps=steps)
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.seeds:
+        from gaia_app.tasks.drive_seeds import evaluate_seeds
+
+        return evaluate_seeds(args, env, probe, steps)
+    rec, headless = open_recording(args)
     try:
-        results = drive(env, dynamics.eval(), rec, steps, args.target_speed, args.curvature, args.gain,
-                        args.max_accel, args.seed)
+        results = drive(env, probe, rec, steps, make_keeper(args, pipeline.rate), args.curvature, args.seed)
         rec.flush()
         if headless is not None:
             print(f"live view: {capture_live(*headless, args.screenshot)}")
@@ -162,7 +300,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         if headless is not None:
             stop_viewer(headless[1])
     atomic_write_text(args.out / "drive.json", json.dumps(results, indent=2))
-    print(f"mean |estimated - target| speed over the last half: {results['mean_abs_speed_error_last_half']:.2f} m/s; "
+    print(f"mean |probed - target| speed over the last 5 s: {results['probed_speed_error']:.2f} m/s; "
           f"{args.out / 'drive.json'}, {args.out / 'drive.rrd'}")
     return results
 
