@@ -299,3 +299,27 @@ def _running_in(proc: Path, group: int) -> bool:
         return int(pgrp) == group and state != "Z"
     except (OSError, ValueError):
         return False
+
+
+def test_a_program_that_is_not_a_rerun_viewer_on_the_port_is_not_sent_the_episode(tmp_path, capsys) -> None:
+    """A web server on --viewer-port: the drive says so and records to drive.rrd only (it used to stream the episode
+    there and crash before writing drive.json)."""
+    import argparse
+    import http.server
+    import threading
+
+    from gaia_app.tasks.drive import open_recording
+    from gaia_app.viz.viewer import speaks_grpc
+
+    server = http.server.HTTPServer(("127.0.0.1", 0), http.server.BaseHTTPRequestHandler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        port = server.server_address[1]
+        assert not speaks_grpc("127.0.0.1", port)
+        args = argparse.Namespace(seed=0, out=tmp_path, screenshot=None, viewer=True, viewer_port=port)
+        rec, headless = open_recording(args)
+        rec.flush()
+        assert headless is None
+        assert f"--viewer-port {port} is taken by a program that is not a Rerun viewer" in capsys.readouterr().out
+    finally:
+        server.shutdown()

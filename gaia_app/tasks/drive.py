@@ -45,12 +45,14 @@ from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.simulator import DrivingSimulator
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.utils.shipped import shipped_folder
+from gaia_app.utils.threads import apply_thread_policy
 from gaia_app.viz.screenshot import capture_live, spawn_headless
 from gaia_app.viz.viewer import (
     LOOPBACK,
     ViewerUnavailable,
     port_open,
     spawn_viewer,
+    speaks_grpc,
     stop_viewer,
 )
 
@@ -272,6 +274,9 @@ def open_recording(args: argparse.Namespace) -> tuple[rr.RecordingStream, Any]:
         try:
             if not port_open(LOOPBACK, args.viewer_port):
                 spawn_viewer(args.viewer_port, LOOPBACK)
+            elif not speaks_grpc(LOOPBACK, args.viewer_port):
+                raise ViewerUnavailable(f"--viewer-port {args.viewer_port} is taken by a program that is not a Rerun "
+                                        "viewer; choose another port")
             sinks.append(rr.GrpcSink(f"rerun+http://{LOOPBACK}:{args.viewer_port}/proxy"))
         except (ViewerUnavailable, OSError) as error:
             print(f"no live viewer ({error}); writing {args.out / 'drive.rrd'} only")
@@ -282,6 +287,8 @@ def open_recording(args: argparse.Namespace) -> tuple[rr.RecordingStream, Any]:
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = parse_args(argv)
+    threads, why = apply_thread_policy(None)  # OMP_NUM_THREADS when set, else the free CPUs (utils/threads.py)
+    print(f"CPU threads: {threads} ({why})")
     pipeline, probe = load_world(args.weights)
     steps = max(1, math.ceil(args.seconds * pipeline.rate))
     env = DrivingSimulator(pipeline, max_steps=steps)
@@ -293,7 +300,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     rec, headless = open_recording(args)
     try:
         results = drive(env, probe, rec, steps, make_keeper(args, pipeline.rate), args.curvature, args.seed)
-        rec.flush()
+        try:
+            rec.flush()
+        except RuntimeError as error:  # a live viewer that went away: the episode and drive.json still count
+            print(f"the live viewer stopped receiving ({error}); drive.rrd may miss the last messages")
         if headless is not None:
             print(f"live view: {capture_live(*headless, args.screenshot)}")
     finally:  # capture_live stops the viewer; a failed episode must not leave it running

@@ -65,6 +65,23 @@ def port_open(host: str, port: int, timeout: float = 0.5) -> bool:
         return False
 
 
+HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])  # + an empty SETTINGS
+
+
+def speaks_grpc(host: str, port: int, timeout: float = 1.0) -> bool:
+    """True when the listener on host:port answers an HTTP/2 connection preface with a SETTINGS frame, as a Rerun
+    viewer's gRPC server does; a web server, a database or anything else on the port answers otherwise (or not at
+    all), and logging to it would fail mid-run."""
+    check_port(port)
+    try:
+        with socket.create_connection((host, port), timeout=timeout) as connection:
+            connection.sendall(HTTP2_PREFACE)
+            reply = connection.recv(9)
+    except OSError:
+        return False
+    return len(reply) >= 4 and reply[3] == 4  # frame header: 3 bytes length, then the type (4 = SETTINGS)
+
+
 def spawn_viewer(port: int, bind: str = LOOPBACK, headless: bool = False, hide_welcome_screen: bool = False,
                  wait_s: float = 20.0) -> subprocess.Popen:
     """Start `rerun` serving on bind:port and wait until it accepts connections; ViewerUnavailable when it exits
