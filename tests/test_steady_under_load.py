@@ -69,7 +69,7 @@ def test_the_governor_follows_load_that_appears_later(monkeypatch) -> None:
         monkeypatch.setattr(governor, "sample", lambda: (20.0, (40 * tck, 10 * tck), 20.0))
         monkeypatch.setattr(threads.time, "monotonic", lambda: 20.0)
         assert governor.tick() == 2 and torch.get_num_threads() == 2
-        monkeypatch.setattr(threads.time, "monotonic", lambda: 25.0)
+        monkeypatch.setattr(threads.time, "monotonic", lambda: 21.0)
         assert governor.tick() is None  # between counts: a clock read, nothing else
     finally:
         torch.set_num_threads(before)

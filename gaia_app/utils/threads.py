@@ -10,7 +10,7 @@ against 8–20 s with one thread (docs/benchmarks.md, "Beside a busy process"). 
 Load that appears later matters as much: a second job started beside a running one turns the first one's idle
 OpenMP threads into spinning ones (12 s instead of 0.3 s for the same loop of small products, measured). So while
 a run under the policy works, `tick()` (called once per generated frame, decoder window, solver step and training
-step) re-counts, at most every `INTERVAL_S` seconds and without sleeping, the CPUs other processes used since the
+step) re-counts, at most every `INTERVAL_S` (3) seconds and without sleeping, the CPUs other processes used since the
 last count (the machine's busy time from /proc/stat less this process's own) and moves torch's thread count to
 what is free.
 
@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 log = logging.getLogger(__name__)
-INTERVAL_S = 10.0
+INTERVAL_S = 3.0
 
 
 def cpu_quota() -> int:
@@ -114,6 +114,8 @@ class ThreadGovernor:
 
         now = self.sample()
         wall = now[0] - self.mark[0]
+        if wall <= 0:
+            return None
         (all0, idle0), (all1, idle1) = self.mark[1], now[1]
         machine_busy = ((all1 - all0) - (idle1 - idle0)) / os.sysconf("SC_CLK_TCK")  # CPU seconds
         others = max(0.0, (machine_busy - (now[2] - self.mark[2])) / wall)
