@@ -12,8 +12,8 @@ _STACKED = ("video", "timestamps", "actions", "intrinsics", "extrinsics")
 
 
 def collate_frames(samples: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
-    """{"image": (k, 3, H, W)} per sample → {"image": (Σk, 3, H, W)}."""
-    return {"image": torch.cat([s["image"] for s in samples])}
+    """{"image": (k, 3, H, W), "agent_box"?: (k, H, W)} per sample → the same keys concatenated over samples."""
+    return {key: torch.cat([s[key] for s in samples]) for key in samples[0]}
 
 
 def pad_agents(per_sample: list[list[AgentBoxes]]) -> dict[str, torch.Tensor]:

@@ -180,14 +180,16 @@ class FrameDataModule(ClipSourceDataModule):
     """Single frames for image tokenizers: batches {"image": (b·k·v, 3, H, W)}.
 
     frames_per_clip: k frames drawn from each clip per item (amortises decoding a clip).
+    agent_boxes: also {"agent_box": (b·k·v, H, W) bool}, the clips' agent boxes in each image (for
+        `model.weights.agents`); every clip needs agent boxes and camera specs.
     """
 
-    def __init__(self, *args, frames_per_clip: int = 1, **kwargs):
+    def __init__(self, *args, frames_per_clip: int = 1, agent_boxes: bool = False, **kwargs):
         super().__init__(*args, **kwargs)
-        self.frames_per_clip = frames_per_clip
+        self.frames_per_clip, self.agent_boxes = frames_per_clip, agent_boxes
 
     def wrap(self, source: ClipSource, train: bool) -> Dataset:
-        return FramesDataset(source, self.height, self.width, self.frames_per_clip, self.resize_mode)
+        return FramesDataset(source, self.height, self.width, self.frames_per_clip, self.resize_mode, self.agent_boxes)
 
     def collate(self, samples: list) -> Any:
         return collate_frames(samples)

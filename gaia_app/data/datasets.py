@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from gaia_app.data.agent_regions import agent_box_masks
 from gaia_app.data.clip import Clip, ClipError
 from gaia_app.data.transforms import resample_clip, resize_clip, to_float
 
@@ -31,14 +32,17 @@ def fit_to_resolution(clip: Clip, height: int, width: int, mode: str) -> Clip:
 
 
 class FramesDataset(Dataset):
-    """Item i: `frames_per_clip` random frames of clip i, every camera → {"image": (k·v, 3, H, W)}.
+    """Item i: `frames_per_clip` random frames of clip i, every camera → {"image": (k·v, 3, H, W)}, and with
+    `agent_boxes` {"agent_box": (k·v, H, W) bool}, the clip's agent boxes projected into each image
+    (gaia_app/data/agent_regions.py).
 
     Used for image tokenizers, which see single frames (GAIA-1 §2.2).
     """
 
-    def __init__(self, source: ClipSource, height: int, width: int, frames_per_clip: int = 1, resize_mode: str = "crop"):
+    def __init__(self, source: ClipSource, height: int, width: int, frames_per_clip: int = 1, resize_mode: str = "crop",
+                 agent_boxes: bool = False):
         self.source, self.height, self.width = source, height, width
-        self.frames_per_clip, self.resize_mode = frames_per_clip, resize_mode
+        self.frames_per_clip, self.resize_mode, self.agent_boxes = frames_per_clip, resize_mode, agent_boxes
 
     def __len__(self) -> int:
         return len(self.source)
@@ -50,6 +54,8 @@ class FramesDataset(Dataset):
         pick = torch.randperm(clip.num_frames)[:k].sort().values.numpy()
         clip = fit_to_resolution(clip.select_frames(pick), self.height, self.width, self.resize_mode)
         frames = torch.from_numpy(clip.frames).flatten(0, 1)  # (v t) c h w
+        if self.agent_boxes:
+            return {"image": to_float(frames), "agent_box": torch.from_numpy(agent_box_masks(clip)).flatten(0, 1)}
         return {"image": to_float(frames)}
 
 

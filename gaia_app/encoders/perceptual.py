@@ -50,6 +50,18 @@ class PerceptualDistance(FrozenImageNetwork):
         per_layer = [self.layer_distance(k, f, t) for k, (f, t) in enumerate(zip(features, target_features))]
         return torch.stack(per_layer).mean(dim=0)
 
+    @torch.no_grad()
+    def distance_map(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """x, target: (b, 3, H, W) in [-1, 1] → (b, H, W): each tap's per-pixel distance upsampled to the input size
+        and averaged over taps (LPIPS's spatial output); its spatial mean is close to `forward`'s distance."""
+        features, target_features = self.trunk(self.normalize(x)), self.trunk(self.normalize(target))
+        maps = []
+        for k, (f, t) in enumerate(zip(features, target_features)):
+            diff = (unit_normalize(f) - unit_normalize(t)).pow(2)
+            diff = self.heads[k](diff) if self.heads is not None else diff.sum(dim=1, keepdim=True)
+            maps.append(nn.functional.interpolate(diff, size=x.shape[-2:], mode="bilinear", align_corners=False))
+        return torch.stack(maps).mean(dim=0)[:, 0]
+
     def layer_distance(self, k: int, features: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """(b, c, h, w) pair at tap k → (b,) spatially averaged distance."""
         diff = (unit_normalize(features) - unit_normalize(target)).pow(2)

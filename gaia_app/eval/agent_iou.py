@@ -34,24 +34,45 @@ def agent_clips(samples: Sequence[SyntheticSample], rate: float, frames: int) ->
 
 
 def train_agent_probe(frames: torch.Tensor, masks: torch.Tensor, steps: int = 300, batch: int = 16, lr: float = 2e-3,
-                      seed: int = 0, progress: bool = True) -> tuple[AgentSegmentationProbe, dict[str, float]]:
-    """Fit the probe on random frames of (N, t, 3, H, W) / (N, t, H, W); returns it (eval mode) and its first/last losses."""
+                      seed: int = 0, progress: bool = True, sharp: bool = False,
+                      widths: tuple[int, ...] = (16, 32, 64)) -> tuple[AgentSegmentationProbe, dict[str, float]]:
+    """Fit the probe on random frames of (N, t, 3, H, W) / (N, t, H, W); returns it (eval mode) and its first/last losses.
+
+    sharp: the recipe of benchmarks/agent_fidelity.py: mirrored frames half the time, a soft-Dice term beside the
+    cross-entropy (agents cover ~5 % of the pixels, so plain cross-entropy settles for thin masks) and a one-cycle
+    learning rate; on 64 held-out scenes it lifts the probe's IoU on real frames from 0.59 to 0.67 at 256 training
+    scenes (docs/evaluation.md, "Agent fidelity")."""
     if frames.shape[:2] != masks.shape[:2] or frames.shape[-2:] != masks.shape[-2:]:
         raise ValueError(f"agent probe: frames {tuple(frames.shape)} and masks {tuple(masks.shape)} do not match")
     generator = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
-    probe = AgentSegmentationProbe()
+    probe = AgentSegmentationProbe(widths)
     optim = torch.optim.AdamW(probe.parameters(), lr=lr, weight_decay=1e-4)
+    # a 5 % warm-up needs a few steps to exist: runs of a handful of steps (tests) keep the constant rate
+    one_cycle = sharp and steps >= 60
+    sched = torch.optim.lr_scheduler.OneCycleLR(optim, lr, total_steps=steps, pct_start=0.05) if one_cycle else None
     flat_frames, flat_masks = frames.flatten(0, 1), masks.flatten(0, 1)
     losses = []
     for _ in tqdm(range(steps), desc="agent probe", disable=not progress):
         pick = torch.randint(len(flat_frames), (batch,), generator=generator)
-        loss = probe.loss(flat_frames[pick], flat_masks[pick])
+        images, targets = flat_frames[pick], flat_masks[pick]
+        if sharp:
+            images, targets = mirrored(images, targets, generator)
+        loss = probe.loss(images, targets, dice=sharp)
         optim.zero_grad()
         loss.backward()
         optim.step()
+        if sched is not None:
+            sched.step()
         losses.append(float(loss.detach()))
     return probe.eval(), {"first_loss": float(np.mean(losses[:10])), "last_loss": float(np.mean(losses[-10:]))}
+
+
+def mirrored(images: torch.Tensor, masks: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each (image (3, H, W), mask (H, W)) pair mirrored left-right with probability ½ (roads run both ways)."""
+    flip = torch.rand(len(images), generator=generator) < 0.5
+    return (torch.where(flip[:, None, None, None], images.flip(-1), images),
+            torch.where(flip[:, None, None], masks.flip(-1), masks))
 
 
 @torch.no_grad()

@@ -26,6 +26,14 @@ from gaia_app.nn.discriminator import adaptive_gan_weight, hinge_discriminator_l
 log = logging.getLogger(__name__)
 
 
+def pixel_terms(recon: torch.Tensor, target: torch.Tensor, l1: float, l2: float,
+                pixels: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """λ_L1·L1 and λ_L2·L2 of a reconstruction, each pixel weighted by `pixels` (broadcast, mean 1) where given."""
+    if pixels is None:
+        return {"l1": l1 * (recon - target).abs().mean(), "l2": l2 * (recon - target).pow(2).mean()}
+    return {"l1": l1 * (pixels * (recon - target).abs()).mean(), "l2": l2 * (pixels * (recon - target).pow(2)).mean()}
+
+
 def is_off(spec: Any) -> bool:
     """True for a switched-off loss network: None, "none", or the empty node that `encoder=none` composes to."""
     if spec is None:

@@ -18,12 +18,12 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from gaia_app.encoders import distillation_loss
 from gaia_app.eval.metrics import codebook_perplexity, psnr, ssim
-from gaia_app.lit.adversarial import AdversarialModule
+from gaia_app.lit.adversarial import AdversarialModule, pixel_terms
+from gaia_app.lit.checkpoint import load_net_weights
 from gaia_app.models.gaia1.tokenizer import ImageTokenizer, TokenizerOutput
 
 OFF_WARNINGS = {
@@ -44,6 +44,8 @@ class LossWeights:
     gan: float = 1.0
     codebook: float = 1.0
     dino: float = 0.1
+    agents: float = 0.0
+    """Not in GAIA-1: the L1/L2 terms weigh pixels inside agent boxes 1 + `agents` times (batch "agent_box")."""
 
 
 class ImageTokenizerModule(AdversarialModule):
@@ -61,6 +63,8 @@ class ImageTokenizerModule(AdversarialModule):
             `trainer.gradient_clip_val` must be null: it is not supported with manual optimisation.
         dead_code_restart_every: every N generator steps, codes unused since the last restart are
             re-seeded from encoder outputs (0 disables). Keeps vocabulary usage up.
+        init_from: tokenizer training checkpoint, or a weights folder with tokenizer.safetensors (e.g. "gaia1"),
+            whose net weights start a fresh fit (a fine-tune, e.g. with `weights.agents`); a resumed run keeps its own.
     """
 
     off_warnings = OFF_WARNINGS
@@ -78,11 +82,12 @@ class ImageTokenizerModule(AdversarialModule):
         adaptive_weight_max: float = 1e4,
         gradient_clip_val: float | None = 1.0,
         dead_code_restart_every: int = 0,
+        init_from: str | None = None,
     ):
         self.weights = LossWeights(**dict(weights or {}))
         super().__init__(net, optim, sched, discriminator, {"perceptual": perceptual, "dino": dino}, gan_start_step,
                          adaptive_weight_max, gradient_clip_val)
-        self.dead_code_restart_every = dead_code_restart_every
+        self.dead_code_restart_every, self.init_from = dead_code_restart_every, init_from
         self._usage: torch.Tensor | None = None
         self._val_tokens: list[torch.Tensor] = []
 
@@ -91,12 +96,33 @@ class ImageTokenizerModule(AdversarialModule):
         self.configure_model()
         return self.net  # type: ignore[return-value]
 
+    def on_fit_start(self) -> None:
+        if self.init_from and self.trainer.ckpt_path is None:
+            load_net_weights(self.tokenizer, self.init_from, "a GAIA-1 tokenizer training checkpoint of the same preset",
+                             component="tokenizer")
+
     # ---- losses --------------------------------------------------------------------------
 
-    def reconstruction_terms(self, image: torch.Tensor, out: TokenizerOutput) -> dict[str, torch.Tensor]:
-        """Weighted L1, L2 and perceptual terms of the image reconstruction loss (GAIA-1 §2.2)."""
+    def pixel_weights(self, image: torch.Tensor, agent_box: torch.Tensor | None) -> torch.Tensor | None:
+        """(b, 1, H, W) weights 1 + λ_agents inside agent boxes (b, H, W), 1 elsewhere, scaled to mean 1 so the
+        loss keeps its scale; None when `weights.agents` is 0."""
+        if self.weights.agents == 0:
+            return None
+        if agent_box is None:
+            raise ValueError("model.weights.agents > 0 needs the agents' boxes in the batch: set data.agent_boxes=true "
+                             "(clips with agent boxes and camera specs)")
+        if agent_box.shape != (image.shape[0], *image.shape[-2:]):
+            raise ValueError(f"batch 'agent_box' {tuple(agent_box.shape)} does not match the images {tuple(image.shape)}")
+        weight = 1 + self.weights.agents * agent_box[:, None].to(image.dtype)
+        return weight / weight.mean()
+
+    def reconstruction_terms(self, image: torch.Tensor, out: TokenizerOutput,
+                             agent_box: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Weighted L1, L2 and perceptual terms of the image reconstruction loss (GAIA-1 §2.2); with
+        `weights.agents` the L1/L2 pixels inside agent boxes (b, H, W) count 1 + λ_agents times."""
         w, recon = self.weights, out.reconstruction
-        terms = {"l1": w.l1 * F.l1_loss(recon, image), "l2": w.l2 * F.mse_loss(recon, image)}
+        pixels = self.pixel_weights(image, agent_box)
+        terms = pixel_terms(recon, image, w.l1, w.l2, pixels)
         if (perceptual := self.frozen_network("perceptual", image.device)) is not None:
             terms["perceptual"] = w.perceptual * perceptual(recon, image).mean()
         return terms
@@ -113,13 +139,15 @@ class ImageTokenizerModule(AdversarialModule):
             terms["dino"] = self.weights.dino * distillation_loss(student, target)
         return terms
 
-    def losses(self, image: torch.Tensor, out: TokenizerOutput) -> dict[str, torch.Tensor]:
+    def losses(self, image: torch.Tensor, out: TokenizerOutput, agent_box: torch.Tensor | None = None
+               ) -> dict[str, torch.Tensor]:
         """Weighted loss terms without the GAN term (as validated), and their total under 'loss'."""
-        return self.generator_terms(image, out, with_gan=False)
+        return self.generator_terms(image, out, with_gan=False, agent_box=agent_box)
 
-    def generator_terms(self, image: torch.Tensor, out: TokenizerOutput, with_gan: bool) -> dict[str, torch.Tensor]:
+    def generator_terms(self, image: torch.Tensor, out: TokenizerOutput, with_gan: bool,
+                        agent_box: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """`losses` plus, when `with_gan`, λ_GAN·w·GAN with w from the decoder's last-layer gradients."""
-        reconstruction = self.reconstruction_terms(image, out)
+        reconstruction = self.reconstruction_terms(image, out, agent_box)
         terms = {**reconstruction, **self.latent_terms(image, out)}
         loss = sum(terms.values())
         if with_gan:
@@ -134,7 +162,7 @@ class ImageTokenizerModule(AdversarialModule):
 
         def generate(with_gan: bool) -> tuple[dict[str, torch.Tensor], TokenizerOutput]:
             out = self.tokenizer(image)
-            return self.generator_terms(image, out, with_gan), out
+            return self.generator_terms(image, out, with_gan, batch.get("agent_box")), out
 
         terms, out = self.adversarial_step(generate, lambda out: (image, out.reconstruction))
         self._track_usage(out.tokens, image, step)
@@ -158,11 +186,14 @@ class ImageTokenizerModule(AdversarialModule):
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
         image = batch["image"]
         out = self.tokenizer(image)
-        terms = self.losses(image, out)
+        terms = self.losses(image, out, batch.get("agent_box"))
         recon = out.reconstruction.clamp(-1, 1)
         self.log_dict({f"val/{k}": v for k, v in terms.items()}, prog_bar=False)
         self.log("val/psnr", psnr(recon, image).mean(), prog_bar=True)
         self.log("val/ssim", ssim(recon, image).mean())
+        if (boxes := batch.get("agent_box")) is not None and boxes.any():
+            inside = ((recon - image) / 2).pow(2).mean(dim=1)[boxes].mean()
+            self.log("val/psnr_in_boxes", 10 * torch.log10(1 / inside.clamp_min(1e-10)))
         self._val_tokens.append(out.tokens.detach().flatten().cpu())
 
     def on_validation_epoch_end(self) -> None:

@@ -20,14 +20,14 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from einops import rearrange
 from torch import nn
 
 from gaia_app.encoders import distillation_loss
 from gaia_app.eval.metrics import psnr, ssim
-from gaia_app.lit.adversarial import AdversarialModule
+from gaia_app.lit.adversarial import AdversarialModule, pixel_terms
 from gaia_app.lit.checkpoint import load_net_weights
+from gaia_app.models.gaia2.conditioning import AgentBoxes3d, box_raster, project_boxes
 from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer, VideoTokenizerOutput, kl_bits_per_pixel
 
 STAGES = ("reconstruction", "gan")
@@ -49,6 +49,8 @@ class VideoLossWeights:
     dino: float = 0.1
     kl: float = 1.0e-4
     gan: float = 0.1
+    agents: float = 0.0
+    """Not in GAIA-2: the L1/L2 terms weigh pixels inside the agents' projected boxes 1 + `agents` times."""
 
 
 class VideoTokenizerModule(AdversarialModule):
@@ -132,10 +134,30 @@ class VideoTokenizerModule(AdversarialModule):
             latents = posterior.sample() if self.sample_posterior else posterior.mode()
         return VideoTokenizerOutput(self.tokenizer.decode(latents), posterior, latents)
 
-    def reconstruction_terms(self, video: torch.Tensor, out: VideoTokenizerOutput) -> dict[str, torch.Tensor]:
-        """Weighted L1, L2 and perceptual (frame by frame) terms (GAIA-2 report, tokenizer)."""
+    def pixel_weights(self, video: torch.Tensor, batch: dict[str, Any] | None) -> torch.Tensor | None:
+        """(b, v, T, 1, H, W) weights 1 + λ_agents inside the agents' boxes projected through the rig, 1 elsewhere,
+        scaled to mean 1; None when `weights.agents` is 0. The boxes come from the batch's "agents_*" (b, T, N)
+        and "intrinsics"/"extrinsics" (b, v, 3, 3)/(b, v, 4, 4), as the world model reads them."""
+        if self.weights.agents == 0:
+            return None
+        needed = ("agents_centre", "agents_size", "agents_yaw", "agents_category", "agents_mask", "intrinsics",
+                  "extrinsics")
+        if batch is None or any(key not in batch for key in needed):
+            raise ValueError("model.weights.agents > 0 needs agent boxes and camera specs in the batch (clips with "
+                             "agents and cameras, e.g. data=synthetic_rig)")
+        agents = AgentBoxes3d(*(batch[f"agents_{k}"] for k in ("centre", "size", "yaw", "category", "mask")))
+        boxes, _, visible = project_boxes(agents, batch["intrinsics"], batch["extrinsics"], tuple(video.shape[-2:]))
+        inside = rearrange(box_raster(boxes, visible, tuple(video.shape[-2:])), "b T v H W -> b v T 1 H W")
+        weight = 1 + self.weights.agents * inside.to(video.dtype)
+        return weight / weight.mean()
+
+    def reconstruction_terms(self, video: torch.Tensor, out: VideoTokenizerOutput,
+                             batch: dict[str, Any] | None = None) -> dict[str, torch.Tensor]:
+        """Weighted L1, L2 and perceptual (frame by frame) terms (GAIA-2 report, tokenizer); with `weights.agents`
+        the L1/L2 pixels inside agent boxes count 1 + λ_agents times."""
         w, recon = self.weights, out.reconstruction
-        terms = {"l1": w.l1 * F.l1_loss(recon, video), "l2": w.l2 * F.mse_loss(recon, video)}
+        pixels = self.pixel_weights(video, batch)
+        terms = pixel_terms(recon, video, w.l1, w.l2, pixels)
         if (perceptual := self.frozen_network("perceptual", video.device)) is not None:
             frames = "b v T c H W -> (b v T) c H W"
             terms["perceptual"] = w.perceptual * perceptual(rearrange(recon, frames), rearrange(video, frames)).mean()
@@ -162,13 +184,16 @@ class VideoTokenizerModule(AdversarialModule):
         middle = video[:, :, tau // 2 :: tau]
         return rearrange(middle, "b v t c H W -> (b v t) c H W")
 
-    def losses(self, video: torch.Tensor, out: VideoTokenizerOutput) -> dict[str, torch.Tensor]:
+    def losses(self, video: torch.Tensor, out: VideoTokenizerOutput, batch: dict[str, Any] | None = None
+               ) -> dict[str, torch.Tensor]:
         """Weighted loss terms without the GAN term (as validated), and their total under 'loss'."""
-        return self.generator_terms(video, out, with_gan=False)
+        return self.generator_terms(video, out, with_gan=False, batch=batch)
 
-    def generator_terms(self, video: torch.Tensor, out: VideoTokenizerOutput, with_gan: bool) -> dict[str, torch.Tensor]:
-        """`losses` plus, when `with_gan`, λ_GAN·w·GAN with w from the decoder's last-layer gradients."""
-        reconstruction = self.reconstruction_terms(video, out)
+    def generator_terms(self, video: torch.Tensor, out: VideoTokenizerOutput, with_gan: bool,
+                        batch: dict[str, Any] | None = None) -> dict[str, torch.Tensor]:
+        """`losses` plus, when `with_gan`, λ_GAN·w·GAN with w from the decoder's last-layer gradients.
+        batch: the agents and cameras for `weights.agents`."""
+        reconstruction = self.reconstruction_terms(video, out, batch)
         terms = {**reconstruction, **self.latent_terms(video, out)}
         loss = sum(terms.values())
         if with_gan:
@@ -184,7 +209,7 @@ class VideoTokenizerModule(AdversarialModule):
 
         def generate(with_gan: bool) -> tuple[dict[str, torch.Tensor], VideoTokenizerOutput]:
             out = self.run_tokenizer(video)
-            return self.generator_terms(video, out, with_gan), out
+            return self.generator_terms(video, out, with_gan, batch), out
 
         terms, _ = self.adversarial_step(generate, lambda out: (as_clips(video), as_clips(out.reconstruction)))
         return {k: v.detach() for k, v in terms.items()}
@@ -194,7 +219,7 @@ class VideoTokenizerModule(AdversarialModule):
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
         video = batch["video"]
         out = self.tokenizer(video, sample=False)
-        terms = self.losses(video, out)
+        terms = self.losses(video, out, batch)
         recon = out.reconstruction.clamp(-1, 1)
         frames = "b v T c H W -> (b v T) c H W"
         n = len(video)

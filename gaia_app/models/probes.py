@@ -169,6 +169,12 @@ class AgentSegmentationProbe(nn.Module):
             x = block(torch.cat([x, skips.pop()], dim=1))
         return self.head(x)[:, 0]
 
-    def loss(self, frames: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
-        """Binary cross-entropy against masks (b, H, W) bool."""
-        return nn.functional.binary_cross_entropy_with_logits(self(frames), masks.float())
+    def loss(self, frames: torch.Tensor, masks: torch.Tensor, dice: bool = False) -> torch.Tensor:
+        """Binary cross-entropy against masks (b, H, W) bool; dice adds 1 − soft Dice over the batch, which weighs the
+        few agent pixels as much as the many background ones."""
+        logits = self(frames)
+        loss = nn.functional.binary_cross_entropy_with_logits(logits, masks.float())
+        if dice:
+            p = logits.sigmoid()
+            loss = loss + 1 - (2 * (p * masks).sum() + 1) / (p.sum() + masks.sum() + 1)
+        return loss

@@ -128,6 +128,18 @@ def project_boxes(agents: AgentBoxes3d, intrinsics: torch.Tensor, extrinsics: to
     return torch.where(visible[..., None], boxes, torch.zeros_like(boxes)), depth * visible, visible
 
 
+def box_raster(boxes: torch.Tensor, visible: torch.Tensor, image_size: tuple[int, int]) -> torch.Tensor:
+    """Pixel masks of boxes (..., N, 4) as (x0, y0, x1, y1) in [0, 1] (`project_boxes`) with visible (..., N):
+    (..., H, W) bool, true at every pixel that overlaps a visible box (a box's edges round outwards)."""
+    height, width = image_size
+    ys = torch.arange(height, device=boxes.device, dtype=boxes.dtype) / height
+    xs = torch.arange(width, device=boxes.device, dtype=boxes.dtype) / width
+    x0, y0, x1, y1 = (boxes[..., i] for i in range(4))  # (..., N)
+    across = (xs + 1 / width > x0[..., None]) & (xs < x1[..., None])  # (..., N, W)
+    down = (ys + 1 / height > y0[..., None]) & (ys < y1[..., None]) & visible[..., None]  # (..., N, H)
+    return (down[..., :, None] & across[..., None, :]).any(dim=-3)
+
+
 def cell_coverage(boxes: torch.Tensor, grid: tuple[int, int]) -> torch.Tensor:
     """Share of each of the gh × gw cells of the unit image covered by each box: boxes (..., 4) as
     (x0, y0, x1, y1) in [0, 1] → (..., gh, gw) in [0, 1]."""

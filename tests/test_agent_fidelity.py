@@ -1,0 +1,148 @@
+"""Agent fidelity of a tokenizer (gaia_app/eval/agent_fidelity.py, benchmarks/agent_fidelity.py)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gaia_app.data.synthetic import SyntheticClipDataset
+from gaia_app.encoders.perceptual import load_perceptual
+from gaia_app.eval.agent_fidelity import (LEAD_RANGE, box_mask, check_labels, fidelity_frames, iou_ratio, lead_found,
+                                          lead_mask, lead_share, per_clip_overlap, region_lpips, region_psnr)
+from gaia_app.nn.vgg import VGG16Features
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def benchmark():
+    spec = importlib.util.spec_from_file_location("agent_fidelity_benchmark", ROOT / "benchmarks" / "agent_fidelity.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def samples():
+    world = SyntheticClipDataset(num_clips=3, seed=4949, height=64, width=112, clip_len=29, render_rate=6.25)
+    return [world.sample(i) for i in range(3)]
+
+
+def test_boxes_are_the_bounding_rectangles_of_each_agent() -> None:
+    ids = np.full((8, 10), -1)
+    ids[1:3, 1:4] = 5
+    ids[2, 2] = -1  # a hole inside the agent is still inside its box
+    ids[5, 6] = 7
+    ids[7, 9] = 7  # one agent seen in two pieces: its box spans both
+    boxes = box_mask(ids)
+    assert boxes[1:3, 1:4].all() and boxes[5:8, 6:10].all()
+    assert boxes.sum() == 6 + 12
+
+
+def test_lead_vehicle_counts_within_range_and_for_vehicles_only() -> None:
+    ids = np.full((4, 4), -1)
+    ids[1, 1:3] = 3
+    near = {"lead_agent": {"track_id": 3, "distance": LEAD_RANGE - 1, "category": "car", "speed": 5.0}}
+    assert lead_mask(ids, near).sum() == 2
+    far = {"lead_agent": {**near["lead_agent"], "distance": LEAD_RANGE + 1}}
+    walker = {"lead_agent": {**near["lead_agent"], "category": "pedestrian"}}
+    for meta in (far, walker, {"lead_agent": None}):
+        assert not lead_mask(ids, meta).any()
+
+
+def test_region_psnr_reads_only_the_region() -> None:
+    real = torch.zeros(2, 1, 3, 4, 4)
+    region = torch.zeros(2, 1, 4, 4, dtype=torch.bool)
+    region[0, 0, :2] = True
+    changed = real.clone()
+    changed[0, 0, :, :2] = 0.2  # error only inside clip 0's region
+    inside, outside = region_psnr(changed, real, region), region_psnr(changed, real, ~region)
+    assert inside[0] == pytest.approx(10 * math.log10(1 / 0.01))
+    assert outside[0] == pytest.approx(100.0)  # no error outside: the 1e-10 floor
+    assert math.isnan(inside[1])  # clip 1 has no region
+
+
+def test_region_lpips_of_identical_frames_is_zero_and_grows_with_damage(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    torch.save(VGG16Features(base_width=8).state_dict(), tmp_path / "small.pth")
+    distance = load_perceptual(checkpoint=tmp_path / "small.pth", base_width=8)
+    real = torch.rand(1, 2, 3, 32, 32) * 2 - 1
+    region = torch.zeros(1, 2, 32, 32, dtype=torch.bool)
+    region[..., :16, :16] = True
+    damaged = real.clone()
+    damaged[..., :16, :16] = 0
+    assert region_lpips(distance.distance_map, real, real, region)[0] == pytest.approx(0.0, abs=1e-6)
+    assert region_lpips(distance.distance_map, damaged, real, region)[0] > region_lpips(
+        distance.distance_map, damaged, real, ~region)[0] > 0
+    whole = distance.distance_map(damaged[0], real[0]).mean(dim=(1, 2))
+    assert torch.allclose(whole, distance(damaged[0], real[0]), rtol=0.5)  # the map's mean tracks the distance
+
+
+def test_iou_ratio_of_a_copy_is_one_and_of_half_the_agents_about_half() -> None:
+    truth = torch.zeros(6, 2, 8, 8, dtype=torch.bool)
+    truth[:, :, 2:6, 2:6] = True
+    real = per_clip_overlap(truth.clone(), truth)
+    half = truth.clone()
+    half[:, :, 2:6, 4:6] = False
+    ratio = iou_ratio(real, per_clip_overlap(half, truth))
+    assert iou_ratio(real, real).mean == pytest.approx(1.0)
+    assert ratio.mean == pytest.approx(0.5) and ratio.low <= 0.5 <= ratio.high and ratio.n == 6
+
+
+def test_lead_found_needs_half_of_the_vehicle_covered() -> None:
+    lead = torch.zeros(2, 3, 4, 4, dtype=torch.bool)
+    lead[0, :, 0, :] = True  # clip 0: a lead vehicle of 4 pixels in every frame; clip 1: none
+    predicted = torch.zeros_like(lead)
+    predicted[0, 0, 0, :2] = True  # half covered: found
+    predicted[0, 1, 0, :1] = True  # a quarter: missed
+    found, present = lead_found(predicted, lead)
+    assert found.tolist() == [1, 0] and present.tolist() == [3, 0]
+    assert lead_share(found, present).mean == pytest.approx(1 / 3)
+
+
+def test_a_clip_without_masks_or_boxes_is_named(samples) -> None:
+    bare = replace(samples[0].clip, agents=None)
+    with pytest.raises(ValueError, match=r"clip 'synthetic-s4949-000000' has no agent masks .* and no agent boxes"):
+        check_labels(bare)  # a plain clip: neither instance masks nor boxes
+    with pytest.raises(ValueError, match=r"synthetic-s4949-000000' has no agent boxes \(clip.agents\)"):
+        check_labels(replace(samples[0], clip=bare))
+
+
+def test_fidelity_frames_carry_agents_boxes_and_lead(samples) -> None:
+    held = fidelity_frames(samples, 6.25, 8)
+    assert held.frames.shape == (3, 8, 3, 64, 112) and held.agents.shape == (3, 8, 64, 112)
+    assert held.agents.any() and (held.boxes | ~held.agents).all()  # every agent pixel lies inside a box
+    assert (held.agents | ~held.lead).all()  # the lead vehicle is an agent
+    with pytest.raises(ValueError, match="has 3 frames at 6.25 Hz, 8 needed"):
+        fidelity_frames([replace(samples[0], clip=samples[0].clip.select_frames(np.arange(3)))], 6.25, 8)
+
+
+def test_benchmark_scores_both_families_with_one_probe(tmp_path: Path) -> None:
+    bench = benchmark()
+    common = ["--clips", "2", "--real-dir", str(tmp_path / "none")]
+    first = bench.main(["--weights", "gaia1", "--probe-clips", "2", "--probe-steps", "3", "--out", str(tmp_path),
+                        "--json", str(tmp_path / "gaia1.json"), *common])
+    written = json.loads((tmp_path / "gaia1.json").read_text())
+    assert written["family"] == "gaia1" and written["agent_iou_ratio"] == first["scores"]["agent_iou_ratio"]["mean"]
+    assert set(written["scores"]) >= {"agent_iou", "psnr_in_boxes", "psnr_background", "lead_presence"}
+    second = bench.main(["--weights", "gaia2", "--probe", str(tmp_path / "agent_probe.safetensors"), *common])
+    assert second["family"] == "gaia2" and second["probe"]["path"].endswith("agent_probe.safetensors")
+    assert second["scores"]["agent_iou"]["real"] == pytest.approx(first["scores"]["agent_iou"]["real"])
+
+
+def test_benchmark_scores_real_videos(tmp_path: Path) -> None:
+    from gaia_app.data.video_io import write_video
+
+    folder = tmp_path / "real"
+    folder.mkdir()
+    write_video(folder / "drive.mp4", (np.random.default_rng(0).random((40, 96, 160, 3)) * 255).astype(np.uint8), 25.0)
+    bench = benchmark()
+    nets = bench.tokenizer_round_trip("gaia1")[1]
+    rows = bench.real_clip_rows(nets, bench.real_videos(folder, 8), None)
+    assert list(rows) == ["drive.mp4"] and rows["drive.mp4"]["frames"] == 8 and 0 < rows["drive.mp4"]["psnr"] < 60
