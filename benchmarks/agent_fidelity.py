@@ -3,8 +3,8 @@ r"""Agent fidelity of a tokenizer: do the tokens keep the other road users? (GAI
     python benchmarks/agent_fidelity.py --weights gaia1 --json outputs/agent_fidelity/gaia1.json
     python benchmarks/agent_fidelity.py --weights gaia2 --probe outputs/agent_fidelity/agent_probe.safetensors
 
-On --clips held-out clips of a synthetic world used for nothing else (--world-seed), with that world's own instance
-masks, 2D boxes and lead agent (gaia_app/eval/agent_fidelity.py):
+On --clips held-out clips of a synthetic world used for nothing else (--world-seed), at the family's frame rate
+(GAIA-1 6.25 Hz, GAIA-2 12.5 Hz), with that world's own instance masks, 2D boxes and lead agent (gaia_app/eval/agent_fidelity.py):
 - agent IoU of the segmentation probe on the real frames (the probe's ceiling: it should reach 0.6) and on the
   tokenizer's round trips, and `agent_iou_ratio` = tokenized ÷ real with a bootstrap interval over clips;
 - PSNR (and LPIPS with --lpips-checkpoint: local VGG16 weights, optional --lpips-heads) inside the agents' boxes
@@ -45,7 +45,8 @@ from gaia_app.models.probes import AgentSegmentationProbe
 from gaia_app.pipelines.checkpoint_nets import checkpoint_nets, component_of
 from gaia_app.utils.shipped import load_nets, shipped_folder, weight_files
 
-RATE = 6.25  # the world models' frame rate (GAIA-1 §3)
+RATES = {"gaia1": 6.25, "gaia2": 12.5}  # each family's frame rate: GAIA-1 §3; the GAIA-2 weights' MANIFEST
+PROBE_RATE = RATES["gaia1"]
 SOURCE_FPS = 25.0
 PROBE_WIDTHS = (16, 32, 64)
 
@@ -56,14 +57,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--json", type=Path, default=None, help="write the results here")
     p.add_argument("--out", type=Path, default=Path("outputs/agent_fidelity"), help="where the trained probe goes")
     p.add_argument("--clips", type=int, default=64, help="held-out clips")
-    p.add_argument("--frames", type=int, default=8, help="frames per clip at 6.25 Hz (a multiple of GAIA-2's τ = 4)")
+    p.add_argument("--frames", type=int, default=8, help="frames per clip at the family's rate (a multiple of GAIA-2's τ = 4)")
     p.add_argument("--world-seed", type=int, default=4949, help="the held-out world (used for nothing else)")
     p.add_argument("--probe", type=Path, default=None, help="a saved agent probe (skips training)")
     p.add_argument("--probe-seed", type=int, default=4901, help="the probe's training world")
     p.add_argument("--probe-clips", type=int, default=1024)
     p.add_argument("--probe-steps", type=int, default=3000)
     p.add_argument("--real-dir", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real")
-    p.add_argument("--real-frames", type=int, default=16, help="frames per real video at 6.25 Hz")
+    p.add_argument("--real-frames", type=int, default=16, help="frames per real video at the family's rate")
     p.add_argument("--lpips-checkpoint", type=Path, default=None, help="local VGG16 weights (torchvision layout)")
     p.add_argument("--lpips-heads", type=Path, default=None, help="local LPIPS heads (vgg.pth of PerceptualSimilarity)")
     args = p.parse_args(argv)
@@ -72,11 +73,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-def labelled_world(seed: int, count: int, frames: int, progress: str) -> FidelityFrames:
-    """`count` clips of the synthetic world `seed` at 64 × 112, `frames` frames at 6.25 Hz, with their labels."""
-    clip_len = int(np.ceil((frames - 1) / RATE * SOURCE_FPS)) + 1
-    world = SyntheticClipDataset(num_clips=count, seed=seed, height=64, width=112, clip_len=clip_len, render_rate=RATE)
-    return fidelity_frames([world.sample(i) for i in tqdm(range(count), desc=progress)], RATE, frames)
+def labelled_world(seed: int, count: int, frames: int, rate: float, progress: str) -> FidelityFrames:
+    """`count` clips of the synthetic world `seed` at 64 × 112, `frames` frames at `rate` Hz, with their labels."""
+    clip_len = int(np.ceil((frames - 1) / rate * SOURCE_FPS)) + 1
+    world = SyntheticClipDataset(num_clips=count, seed=seed, height=64, width=112, clip_len=clip_len, render_rate=rate)
+    return fidelity_frames([world.sample(i) for i in tqdm(range(count), desc=progress)], rate, frames)
 
 
 def agent_probe(args: argparse.Namespace) -> tuple[AgentSegmentationProbe, dict[str, Any]]:
@@ -85,7 +86,7 @@ def agent_probe(args: argparse.Namespace) -> tuple[AgentSegmentationProbe, dict[
     if args.probe is not None:
         probe.load_state_dict(load_file(str(args.probe)))
         return probe.eval(), {"path": str(args.probe)}
-    train = labelled_world(args.probe_seed, args.probe_clips, args.frames, "render the probe's world")
+    train = labelled_world(args.probe_seed, args.probe_clips, args.frames, PROBE_RATE, "render the probe's world")
     probe, fit = train_agent_probe(train.frames, train.agents, steps=args.probe_steps, seed=0, sharp=True,
                                    widths=PROBE_WIDTHS)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -127,23 +128,23 @@ def _has(folder: Path, component: str) -> bool:
     return all(path.is_file() for path in weight_files(folder, component))
 
 
-def real_videos(root: Path, frames: int) -> list[Clip]:
-    """Every video under `root` at 6.25 Hz, its first `frames` frames at 64 × 112 (a whole number of τ = 4 steps)."""
+def real_videos(root: Path, frames: int, rate: float) -> list[Clip]:
+    """Every video under `root` at `rate`, its first `frames` frames at 64 × 112 (a whole number of τ = 4 steps)."""
     clips = []
     for path in sorted(p for p in root.rglob("*") if p.suffix.lower() in (".mp4", ".avi", ".mov", ".mkv")):
-        pixels, fps = read_video(path, max_frames=int(np.ceil(frames * fps_ratio(path))) + 4)
+        pixels, fps = read_video(path, max_frames=int(np.ceil(frames * fps_ratio(path, rate))) + 4)
         stamps = np.arange(len(pixels)) / fps
         clip = Clip(str(path.relative_to(root)), pixels.transpose(0, 3, 1, 2)[None], stamps)
-        clip = fit_to_resolution(resample_clip(clip, RATE), 64, 112, "crop")
+        clip = fit_to_resolution(resample_clip(clip, rate), 64, 112, "crop")
         keep = min(frames, clip.num_frames) // 4 * 4
         if keep:
             clips.append(clip.select_frames(np.arange(keep)))
     return clips
 
 
-def fps_ratio(path: Path) -> float:
-    """Source frames per frame at 6.25 Hz (at least 1)."""
-    return max(float(video_info(path).fps) / RATE, 1.0)
+def fps_ratio(path: Path, rate: float) -> float:
+    """Source frames per frame at `rate` (at least 1)."""
+    return max(float(video_info(path).fps) / rate, 1.0)
 
 
 def real_clip_rows(round_trip: Any, clips: list[Clip], lpips: Any) -> dict[str, dict[str, float]]:
@@ -182,7 +183,7 @@ def markdown(family: str, result: dict[str, Any]) -> str:
 
     s = result["scores"]
     lines = [f"Agent fidelity of the {family} tokenizer ({result['clips']} clips of world {result['world_seed']}, "
-             f"{result['frames']} frames each at 6.25 Hz; 95 % intervals over clips)", "",
+             f"{result['frames']} frames each at {result['rate']:g} Hz; 95 % intervals over clips)", "",
              "| | real frames | tokenized frames |", "|---|---|---|",
              f"| agent IoU (probe) | {s['agent_iou']['real']:.3f} | {s['agent_iou']['tokenized']:.3f} |",
              f"| lead vehicle found ({s['lead_frames']} frames) | {est(s['lead_presence']['real'])} | "
@@ -208,11 +209,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if args.lpips_checkpoint is not None:
         lpips = load_perceptual("vgg16", args.lpips_checkpoint, args.lpips_heads, config_key="--lpips-checkpoint")
     probe, probe_info = agent_probe(args)
-    held = labelled_world(args.world_seed, args.clips, args.frames, "render the held-out world")
+    rate = RATES[family]
+    held = labelled_world(args.world_seed, args.clips, args.frames, rate, "render the held-out world")
     tokenized = torch.cat([round_trip(v) for v in tqdm(held.frames.split(8), desc=f"{family} round trips")])
-    result = {"weights": args.weights, "family": family, "clips": args.clips, "frames": args.frames,
+    result = {"weights": args.weights, "family": family, "clips": args.clips, "frames": args.frames, "rate": rate,
               "world_seed": args.world_seed, "probe": probe_info, "scores": score(probe, held, tokenized, lpips),
-              "real_videos": real_clip_rows(round_trip, real_videos(args.real_dir, args.real_frames), lpips)
+              "real_videos": real_clip_rows(round_trip, real_videos(args.real_dir, args.real_frames, rate), lpips)
               if args.real_dir.is_dir() else {}}
     result["agent_iou_ratio"] = result["scores"]["agent_iou_ratio"]["mean"]
     if result["scores"]["agent_iou"]["real"] < 0.6:

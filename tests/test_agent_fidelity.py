@@ -144,5 +144,5 @@ def test_benchmark_scores_real_videos(tmp_path: Path) -> None:
     write_video(folder / "drive.mp4", (np.random.default_rng(0).random((40, 96, 160, 3)) * 255).astype(np.uint8), 25.0)
     bench = benchmark()
     nets = bench.tokenizer_round_trip("gaia1")[1]
-    rows = bench.real_clip_rows(nets, bench.real_videos(folder, 8), None)
+    rows = bench.real_clip_rows(nets, bench.real_videos(folder, 8, 6.25), None)
     assert list(rows) == ["drive.mp4"] and rows["drive.mp4"]["frames"] == 8 and 0 < rows["drive.mp4"]["psnr"] < 60

@@ -59,8 +59,8 @@ class VideoTokenizerModule(AdversarialModule):
     Args:
         net, optim, sched: see GaiaModule.
         stage: "reconstruction" (stage 1, everything trains, no GAN) or "gan" (stage 2, decoder only + GAN).
-        init_from: checkpoint whose tokenizer weights initialise the net when a fresh fit starts (stage 2
-            starts from stage 1); None: random init. Only `net.*` weights are read; the optimiser starts afresh.
+        init_from: checkpoint (or weights folder such as "gaia2") whose tokenizer weights initialise the net when a
+            fresh fit starts (stage 2 starts from stage 1; a fine-tune from the shipped weights); None: random init. Only `net.*` weights are read; the optimiser starts afresh.
         discriminator: PatchDiscriminator3d factory (used in stage "gan" only), or None.
         perceptual: factory of the frozen perceptual network (applied frame by frame), or none.
         dino: factory of the frozen DINOv2 teacher (`load_vision_teacher` partial), or none.
@@ -265,5 +265,7 @@ def latent_mosaic(latents: torch.Tensor, columns: int = 8) -> torch.Tensor:
 
 
 def load_tokenizer_weights(net: VideoTokenizer, path: str | Path) -> None:
-    """Copy the `net.*` weights of a VideoTokenizerModule checkpoint into `net` (strict: same architecture)."""
-    load_net_weights(net, path, "a stage-1 tokenizer checkpoint (a VideoTokenizerModule checkpoint)")
+    """Copy the `net.*` weights of a VideoTokenizerModule checkpoint, or of a weights folder's video_tokenizer (e.g.
+    "gaia2", the shipped one), into `net` (strict: same architecture)."""
+    load_net_weights(net, path, "a stage-1 tokenizer checkpoint (a VideoTokenizerModule checkpoint)",
+                     component="video_tokenizer")
