@@ -35,7 +35,6 @@ import numpy as np
 import rerun as rr
 import torch
 from einops import rearrange
-from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 import gaia_app.utils.resolvers  # noqa: F401

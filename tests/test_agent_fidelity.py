@@ -146,3 +146,6 @@ def test_benchmark_scores_real_videos(tmp_path: Path) -> None:
     nets = bench.tokenizer_round_trip("gaia1")[1]
     rows = bench.real_clip_rows(nets, bench.real_videos(folder, 8, 6.25), None)
     assert list(rows) == ["drive.mp4"] and rows["drive.mp4"]["frames"] == 8 and 0 < rows["drive.mp4"]["psnr"] < 60
+    assert rows["drive.mp4"]["fps"] == pytest.approx(6.25)
+    slow = bench.real_videos(folder, 8, 50.0)  # a video slower than the model's rate keeps its own frames
+    assert slow[0].num_frames == 8 and slow[0].fps == pytest.approx(25.0)

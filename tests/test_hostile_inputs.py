@@ -10,7 +10,6 @@ import pickle
 from pathlib import Path
 
 import pytest
-import torch
 
 from gaia_app.lit.checkpoint import UnsafeCheckpointError, check_checkpoint_file, load_module, read_checkpoint
 from gaia_app.tasks.generate import generate
