@@ -1,7 +1,7 @@
 r"""Agent fidelity of a tokenizer: do the tokens keep the other road users? (GAIA-1 §7, GAIA-2 agents)
 
     python benchmarks/agent_fidelity.py --weights gaia1 --json outputs/agent_fidelity/gaia1.json
-    python benchmarks/agent_fidelity.py --weights gaia2 --probe outputs/agent_fidelity/agent_probe.safetensors
+    python benchmarks/agent_fidelity.py --weights gaia2 --train-probe   # a probe of its own (written to --out)
 
 On --clips held-out clips of a synthetic world used for nothing else (--world-seed), at the family's frame rate
 (GAIA-1 6.25 Hz, GAIA-2 12.5 Hz), with that world's own instance masks, 2D boxes and lead agent (gaia_app/eval/agent_fidelity.py):
@@ -13,9 +13,9 @@ On --clips held-out clips of a synthetic world used for nothing else (--world-se
   probe covers at least half of it, on real and on tokenized frames.
 Also the tokenizer's PSNR/SSIM (and LPIPS) on every video under --real-dir (real dashcam clips it never trained on).
 
-The probe is trained on a world of its own (--probe-seed, --probe-clips scenes, --probe-steps, the `sharp` recipe of
-`train_agent_probe`) and saved to OUT/agent_probe.safetensors; --probe reuses a saved one, so the two families are
-scored with the same probe. Target: agent_iou_ratio ≥ 0.8 for GAIA-1 and for GAIA-2.
+The probe is the shipped one (gaia_app/weights/probes, trained on 1 024 clips of world 4901), so every tokenizer is
+scored by the same reader; --train-probe trains one on a world of its own (--probe-seed, --probe-clips scenes,
+--probe-steps, the `sharp` recipe of `train_agent_probe`, 4 min on 2 cores) and writes it to OUT for --probe. Target: agent_iou_ratio ≥ 0.8 for GAIA-1 and for GAIA-2.
 """
 
 from __future__ import annotations
@@ -28,7 +28,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
 from gaia_app.data.clip import Clip
@@ -39,7 +38,7 @@ from gaia_app.data.video_io import read_video, video_info
 from gaia_app.encoders.perceptual import load_perceptual
 from gaia_app.eval.agent_fidelity import (FidelityFrames, fidelity_frames, finite_interval, iou_ratio, lead_found,
                                           lead_share, per_clip_overlap, region_lpips, region_psnr)
-from gaia_app.eval.agent_iou import predicted_agents, train_agent_probe
+from gaia_app.eval.agent_iou import load_agent_probe, predicted_agents, save_agent_probe, train_agent_probe
 from gaia_app.eval.metrics import psnr, ssim
 from gaia_app.models.probes import AgentSegmentationProbe
 from gaia_app.pipelines.checkpoint_nets import checkpoint_nets, component_of
@@ -55,11 +54,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--weights", required=True, help="gaia1, gaia2, a folder of exported weights or a tokenizer .ckpt")
     p.add_argument("--json", type=Path, default=None, help="write the results here")
-    p.add_argument("--out", type=Path, default=Path("outputs/agent_fidelity"), help="where the trained probe goes")
+    p.add_argument("--out", type=Path, default=Path("outputs/agent_fidelity/probe"), help="where --train-probe writes")
     p.add_argument("--clips", type=int, default=64, help="held-out clips")
     p.add_argument("--frames", type=int, default=8, help="frames per clip at the family's rate (a multiple of GAIA-2's τ = 4)")
     p.add_argument("--world-seed", type=int, default=4949, help="the held-out world (used for nothing else)")
-    p.add_argument("--probe", type=Path, default=None, help="a saved agent probe (skips training)")
+    p.add_argument("--probe", default="probes", help="weights folder of the agent probe (default: the shipped one)")
+    p.add_argument("--train-probe", action="store_true", help="train a probe on the probe world instead")
     p.add_argument("--probe-seed", type=int, default=4901, help="the probe's training world")
     p.add_argument("--probe-clips", type=int, default=1024)
     p.add_argument("--probe-steps", type=int, default=3000)
@@ -81,19 +81,18 @@ def labelled_world(seed: int, count: int, frames: int, rate: float, progress: st
 
 
 def agent_probe(args: argparse.Namespace) -> tuple[AgentSegmentationProbe, dict[str, Any]]:
-    """The saved probe of --probe, or one trained on the probe world (and saved to OUT/agent_probe.safetensors)."""
-    probe = AgentSegmentationProbe(PROBE_WIDTHS)
-    if args.probe is not None:
-        probe.load_state_dict(load_file(str(args.probe)))
-        return probe.eval(), {"path": str(args.probe)}
+    """The probe of the weights folder --probe (the shipped one by default), or with --train-probe one trained on
+    the probe world and written to OUT (a folder --probe can name later)."""
+    if not args.train_probe:
+        probe, info = load_agent_probe(args.probe)
+        return probe, {**info, "path": str(shipped_folder(args.probe))}
     train = labelled_world(args.probe_seed, args.probe_clips, args.frames, PROBE_RATE, "render the probe's world")
     probe, fit = train_agent_probe(train.frames, train.agents, steps=args.probe_steps, seed=0, sharp=True,
                                    widths=PROBE_WIDTHS)
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "agent_probe.safetensors"
-    save_file({k: v.contiguous() for k, v in probe.state_dict().items()}, str(path))
-    return probe, {**fit, "path": str(path), "world_seed": args.probe_seed, "clips": args.probe_clips,
-                   "steps": args.probe_steps}
+    info = {**fit, "world_seed": args.probe_seed, "clips": args.probe_clips, "frames": args.frames,
+            "rate": PROBE_RATE, "steps": args.probe_steps, "recipe": "train_agent_probe(sharp=True)"}
+    save_agent_probe(probe, args.out, info)
+    return probe, {**info, "path": str(args.out)}
 
 
 def tokenizer_round_trip(weights: str) -> tuple[str, Any]:

@@ -16,6 +16,8 @@ from gaia_app.data.synthetic import SyntheticClipDataset
 from gaia_app.encoders.perceptual import load_perceptual
 from gaia_app.eval.agent_fidelity import (LEAD_RANGE, box_mask, check_labels, fidelity_frames, iou_ratio, lead_found,
                                           lead_mask, lead_share, per_clip_overlap, region_lpips, region_psnr)
+from gaia_app.eval.agent_iou import load_agent_probe, predicted_agents, save_agent_probe
+from gaia_app.models.probes import AgentSegmentationProbe
 from gaia_app.nn.vgg import VGG16Features
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -126,14 +128,32 @@ def test_fidelity_frames_carry_agents_boxes_and_lead(samples) -> None:
 def test_benchmark_scores_both_families_with_one_probe(tmp_path: Path) -> None:
     bench = benchmark()
     common = ["--clips", "2", "--real-dir", str(tmp_path / "none")]
-    first = bench.main(["--weights", "gaia1", "--probe-clips", "2", "--probe-steps", "3", "--out", str(tmp_path),
-                        "--json", str(tmp_path / "gaia1.json"), *common])
+    first = bench.main(["--weights", "gaia1", "--train-probe", "--probe-clips", "2", "--probe-steps", "3",
+                        "--out", str(tmp_path / "probe"), "--json", str(tmp_path / "gaia1.json"), *common])
     written = json.loads((tmp_path / "gaia1.json").read_text())
     assert written["family"] == "gaia1" and written["agent_iou_ratio"] == first["scores"]["agent_iou_ratio"]["mean"]
     assert set(written["scores"]) >= {"agent_iou", "psnr_in_boxes", "psnr_background", "lead_presence"}
-    second = bench.main(["--weights", "gaia2", "--probe", str(tmp_path / "agent_probe.safetensors"), *common])
-    assert second["family"] == "gaia2" and second["probe"]["path"].endswith("agent_probe.safetensors")
-    assert second["scores"]["agent_iou"]["real"] == pytest.approx(first["scores"]["agent_iou"]["real"])
+    assert written["probe"]["steps"] == 3 and written["rate"] == 6.25
+    second = bench.main(["--weights", "gaia2", "--probe", str(tmp_path / "probe"), *common])
+    assert second["family"] == "gaia2" and second["rate"] == 12.5 and second["probe"]["world_seed"] == 4901
+
+
+def test_the_shipped_probe_reads_agents_on_held_out_frames() -> None:
+    """Pins the probe's ceiling (issue: ≥ 0.6 on real frames; 0.83 over 64 clips): 8 clips of the held-out world."""
+    probe, info = load_agent_probe()
+    assert info["iou_on_real_frames"]["world"] == 4949
+    world = SyntheticClipDataset(num_clips=8, seed=4949, height=64, width=112, clip_len=29, render_rate=6.25)
+    held = fidelity_frames([world.sample(i) for i in range(8)], 6.25, 8)
+    intersection, union = per_clip_overlap(predicted_agents(probe, held.frames), held.agents)
+    assert intersection.sum() / union.sum() >= 0.6
+
+
+def test_a_saved_probe_loads_as_it_was(tmp_path: Path) -> None:
+    probe = AgentSegmentationProbe((8, 16, 32)).eval()
+    save_agent_probe(probe, tmp_path, {"steps": 1})
+    loaded, info = load_agent_probe(tmp_path)
+    x = torch.rand(1, 3, 64, 112) * 2 - 1
+    assert info == {"steps": 1} and loaded.widths == (8, 16, 32) and torch.equal(loaded(x), probe(x))
 
 
 def test_benchmark_scores_real_videos(tmp_path: Path) -> None:

@@ -11,6 +11,8 @@ the ground-truth agent masks of the real frames those generated frames stand for
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -20,6 +22,11 @@ from gaia_app.data.synthetic.generate import SyntheticSample
 from gaia_app.data.transforms import resample_clip
 from gaia_app.eval.controllability import probe_clips
 from gaia_app.models.probes import AgentSegmentationProbe
+from gaia_app.utils.run_dir import atomic_path, atomic_write_text
+from gaia_app.utils.shipped import FORMAT, load_nets, shipped_folder, stored
+from gaia_app.utils.untrusted import dump_plain_yaml
+
+PROBE_COMPONENT = "agent_probe"
 
 
 def agent_clips(samples: Sequence[SyntheticSample], rate: float, frames: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -110,3 +117,26 @@ def overlap_counts(predicted: torch.Tensor, masks: torch.Tensor, region: torch.T
             raise ValueError(f"agent_iou: region {tuple(region.shape)} does not match masks {tuple(masks.shape)}")
         predicted, masks = predicted & region, masks & region
     return int((predicted & masks).sum()), int((predicted | masks).sum())
+
+
+def save_agent_probe(probe: AgentSegmentationProbe, folder: str | Path, info: dict[str, Any]) -> Path:
+    """Write the probe as a weights component (`agent_probe.safetensors` + `agent_probe.yaml`, the layout of
+    utils/shipped.py) into `folder`, with `info` (how it was trained, what it scores); returns the folder."""
+    from safetensors.torch import save_file
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    tensors = {f"net.{k}": stored(v, torch.float32) for k, v in probe.state_dict().items()}
+    with atomic_path(folder / f"{PROBE_COMPONENT}.safetensors") as tmp:
+        save_file(tensors, str(tmp))
+    config = {"format": FORMAT, "component": PROBE_COMPONENT, "dtype": "float32",
+              "nets": {"net": {"_target_": "gaia_app.models.probes.AgentSegmentationProbe", "widths": list(probe.widths)}},
+              "info": info}
+    atomic_write_text(folder / f"{PROBE_COMPONENT}.yaml", dump_plain_yaml(config))
+    return folder
+
+
+def load_agent_probe(folder: str | Path = "probes") -> tuple[AgentSegmentationProbe, dict[str, Any]]:
+    """(probe in eval mode, its info) from a weights folder, by default the shipped one (gaia_app/weights/probes)."""
+    nets, info = load_nets(shipped_folder(folder), PROBE_COMPONENT)
+    return nets["net"], info

@@ -142,6 +142,7 @@ class AgentSegmentationProbe(nn.Module):
 
     def __init__(self, widths: Sequence[int] = (16, 32, 64)):
         super().__init__()
+        self.widths = tuple(int(w) for w in widths)
         self.down = nn.ModuleList()
         prev = 3
         for width in widths:
