@@ -169,3 +169,15 @@ def test_benchmark_scores_real_videos(tmp_path: Path) -> None:
     assert rows["drive.mp4"]["fps"] == pytest.approx(6.25)
     slow = bench.real_videos(folder, 8, 50.0)  # a video slower than the model's rate keeps its own frames
     assert slow[0].num_frames == 8 and slow[0].fps == pytest.approx(25.0)
+
+
+def test_inserted_car_benchmark_reads_the_car_it_inserts(tmp_path: Path) -> None:
+    spec = importlib.util.spec_from_file_location("gaia2_inserted_car", ROOT / "benchmarks" / "gaia2_inserted_car.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    result = bench.main(["--contexts", "1", "--real-clips", "2", "--json", str(tmp_path / "car.json"), "--",
+                         "model.sampler.steps=2", "model.chunks=1", "model.sampler.progress=false"])
+    rows = result["per_scene"]
+    assert rows["frames"][0] > 0 and 0 <= rows["read"][0] <= rows["frames"][0]
+    assert result["box_growth_brake"]["mean"] > 1  # the braking car's projected box grows as it closes in
+    assert json.loads((tmp_path / "car.json").read_text())["read_share"] == bench.READ_SHARE
