@@ -11,7 +11,9 @@ absolute step embeddings (GAIA-1 §2.1) every slide re-embeds and re-prefills th
 carries its old window index; with rotary step positions (`temporal_encoding=rope`, the net's `rolling_cache`) the
 oldest step is dropped from the cache and the slide costs what any other frame costs (exact in the first layer,
 an approximation of the re-prefilled window beyond it: `SamplingSession`). `SamplingSession` holds one rollout's
-state between frames, so a closed loop can append each step's conditions as they arrive.
+state between frames, so a closed loop can append each step's conditions as they arrive. `decode_step="compiled"`
+decodes the tokens after a frame's first with a fixed-shape step on a static KV cache under torch.compile (CUDA
+graphs on a GPU; gaia_app/diffusion/compiled_decode.py), the same tokens at a fraction of eager's launch cost.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from typing import Protocol
 import torch
 from tqdm.auto import tqdm
 
+from gaia_app.diffusion.compiled_decode import DECODE_STEPS, StaticStream, StepPool
 from gaia_app.diffusion.guidance import ClassifierFreeGuidance
 from gaia_app.nn.attention import KVCache
 from gaia_app.utils import threads
@@ -47,7 +50,9 @@ class TokenWorldModel(Protocol):
     steps per context window, `m` text positions per step, embedding of tokens and conditions, the causal trunk
     (optionally KV-cached) and the token head. The sampler depends on this, not on a concrete model (DESIGN.md §3).
     Optional: `rolling_cache` True (with `step_len`, positions per step) when time is relative, so a sliding window
-    drops the oldest step from the KV cache instead of re-embedding the window (gaia_app/nn/rope.py)."""
+    drops the oldest step from the KV cache instead of re-embedding the window (gaia_app/nn/rope.py). Optional too:
+    `embed_token`, `decode_token` and `static_cache`, the fixed-shape decode step of `decode_step="static"` /
+    `"compiled"` (gaia_app/diffusion/compiled_decode.py; a net without them decodes eagerly)."""
 
     frames: int
     m: int
@@ -59,6 +64,8 @@ class TokenWorldModel(Protocol):
     def decode(self, x: torch.Tensor, cache: KVCache | None = None) -> torch.Tensor: ...
 
 MODES = ("argmax", "sample", "top_k", "top_p")
+# TokenPicker.prepare's result: the tokens, or the candidates' probabilities and their tokens
+Prepared = torch.Tensor | tuple[torch.Tensor, torch.Tensor | None]
 
 
 @dataclass(frozen=True)
@@ -86,6 +93,12 @@ class TokenPicker:
         """(b, V) logits → (b,) int64 tokens. gumbel (b, V): standard Gumbel noise per vocabulary entry; when given,
         the token is the Gumbel-max choice among the allowed tokens (the same distribution as without it), so rows
         handed the same noise pick the same token wherever their logits agree (`shared_gumbel`)."""
+        return self.finish(self.prepare(logits, gumbel), generator)
+
+    def prepare(self, logits: torch.Tensor, gumbel: torch.Tensor | None = None) -> Prepared:
+        """The deterministic part of the choice (what a captured decode step runs, gaia_app/diffusion/
+        compiled_decode.py): the tokens (b,) when no random draw is left (argmax, or `gumbel` given), else the
+        candidates' probabilities (b, K) and their tokens (b, K) (None when column k is token k) for `finish`."""
         if self.mode == "argmax":
             return logits.argmax(-1)
         logits = logits.float() / self.temperature
@@ -93,11 +106,19 @@ class TokenPicker:
             return (self.allowed(logits) + gumbel).argmax(-1)
         if self.mode == "top_k":
             top, index = logits.topk(min(self.k, logits.shape[-1]), dim=-1)
-            choice = torch.multinomial(top.softmax(-1), 1, generator=generator)
-            return index.gather(-1, choice).squeeze(-1)
+            return top.softmax(-1), index
         if self.mode == "top_p":
-            return nucleus_sample(logits, self.p, generator)
-        return torch.multinomial(logits.softmax(-1), 1, generator=generator).squeeze(-1)
+            return nucleus(logits, self.p)
+        return logits.softmax(-1), None
+
+    @staticmethod
+    def finish(prepared: Prepared, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Tokens (b,) from `prepare`'s result: one multinomial draw among the candidates when one is left."""
+        if isinstance(prepared, torch.Tensor):
+            return prepared
+        probs, index = prepared
+        choice = torch.multinomial(probs, 1, generator=generator)
+        return (choice if index is None else index.gather(-1, choice)).squeeze(-1)
 
     def allowed(self, logits: torch.Tensor) -> torch.Tensor:
         """(b, V) tempered logits → the same with every token this picker cannot choose at −inf."""
@@ -138,21 +159,31 @@ def check_groups(groups: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
 def nucleus_sample(logits: torch.Tensor, p: float, generator: torch.Generator | None = None) -> torch.Tensor:
     """(b, V) logits → (b,) tokens drawn from the smallest set of most likely tokens whose probability reaches p
     (the most likely token is always kept), renormalised."""
+    return TokenPicker.finish(nucleus(logits, p), generator)
+
+
+def nucleus(logits: torch.Tensor, p: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(b, V) logits → the probabilities sorted in descending order (b, V), those outside the nucleus of mass p
+    zeroed, and their tokens (b, V)."""
     probs, index = logits.softmax(-1).sort(dim=-1, descending=True)
     before = probs.cumsum(-1) - probs  # mass of the more likely tokens
-    kept = probs.masked_fill(before >= p, 0.0)
-    choice = torch.multinomial(kept, 1, generator=generator)
-    return index.gather(-1, choice).squeeze(-1)
+    return probs.masked_fill(before >= p, 0.0), index
+
+
+def window_positions(net: TokenWorldModel) -> int:
+    """The most positions one context window holds in the cache: T steps plus the next step's text (0 when the
+    net does not say its step length)."""
+    step_len = getattr(net, "step_len", 0)
+    return net.frames * step_len + net.m if step_len else 0
 
 
 class WindowStream:
     """Positions fed so far in one context window: a KV cache, or the embedded chunks re-run in full."""
 
-    def __init__(self, net: TokenWorldModel, use_cache: bool):
+    def __init__(self, net: TokenWorldModel, use_cache: bool, capacity: int | None = None):
         self.net = net
-        # a window's positions, preallocated: T steps plus the next step's text
-        capacity = net.frames * getattr(net, "step_len", 0) + net.m or None
-        self.cache = KVCache(capacity) if use_cache else None
+        # preallocated for a window's positions (it grows beyond them by concatenation)
+        self.cache = KVCache(capacity or window_positions(net) or None) if use_cache else None
         self.chunks: list[torch.Tensor] = []
 
     def feed(self, x: torch.Tensor) -> torch.Tensor:
@@ -172,12 +203,36 @@ class AutoregressiveSampler:
         picker: how each token is chosen from the (guided) logits.
         use_cache: KV-cached incremental decoding (True) or full recompute at every token.
         progress: a progress bar over generated frames.
+        decode_step: how a token after a frame's first is decoded (gaia_app/diffusion/compiled_decode.py):
+            "eager" (per-token eager PyTorch), "static" (a fixed-shape step on a static KV cache) or "compiled"
+            (that step under torch.compile: CUDA-graph captured on CUDA; falls back to eager with one warning where
+            it cannot compile). All three give the same tokens under a seed. Needs use_cache.
+        cache_capacity: KV-cache positions per layer (None: one window, T steps plus the next step's text); less
+            than a window is a ValueError.
     """
 
-    def __init__(self, picker: TokenPicker | None = None, use_cache: bool = True, progress: bool = False):
+    def __init__(self, picker: TokenPicker | None = None, use_cache: bool = True, progress: bool = False,
+                 decode_step: str = "eager", cache_capacity: int | None = None):
+        if decode_step not in DECODE_STEPS:
+            raise ValueError(f"decode_step={decode_step!r}: expected one of {DECODE_STEPS}")
+        if decode_step != "eager" and not use_cache:
+            raise ValueError(f"decode_step={decode_step!r} decodes on a static KV cache: it needs use_cache=True")
+        if cache_capacity is not None and (isinstance(cache_capacity, bool) or int(cache_capacity) != cache_capacity
+                                           or cache_capacity < 1):
+            raise ValueError(f"cache_capacity={cache_capacity!r}: expected a positive integer or None")
         self.picker = picker or TokenPicker()
         self.use_cache = use_cache
         self.progress = progress
+        self.decode_step, self.cache_capacity = decode_step, cache_capacity
+        self.steps = StepPool(decode_step) if decode_step != "eager" else None
+
+    def capacity(self, net: TokenWorldModel) -> int:
+        """KV-cache positions per layer for `net`'s window; ValueError when cache_capacity is below it."""
+        needed = window_positions(net)
+        if self.cache_capacity is not None and self.cache_capacity < needed:
+            raise ValueError(f"cache_capacity={self.cache_capacity} positions is too small for the window of "
+                             f"{needed} positions ({net.frames} steps × {net.step_len} + {net.m} text positions)")
+        return self.cache_capacity or needed
 
     @torch.no_grad()
     def __call__(self, net: TokenWorldModel, context: torch.Tensor, cond: StepConditions,
@@ -243,6 +298,7 @@ class SamplingSession:
         self.given = tuple(given)
         self.noise_groups = None if noise_groups is None else check_groups(noise_groups, context)
         self.noise_count = None if noise_groups is None else int(noise_groups.max()) + 1
+        self.capacity = sampler.capacity(net)  # first: a cache too small for the window fails here
 
     @property
     def known_steps(self) -> int:
@@ -272,20 +328,36 @@ class SamplingSession:
             scales = self.guidance.scales(1, n)[0]
         tokens = torch.cat([self.tokens, self.tokens.new_zeros(b, 1, n)], dim=1)
         if self.stream is None:
-            self.stream = WindowStream(net, self.sampler.use_cache)
+            self.stream = self.open_stream()
             x = self.prefill(tokens, t)
         else:  # the previous frame's last image token and its actions, then this step's text
             x = torch.cat([self.embed_step(tokens, t - 1)[:, net.m + n - 1 :], self.embed_step(tokens, t)[:, : net.m]],
                           dim=1)
-        for i in range(n):
-            logits = self.stream.feed(x)
-            if self.guidance is not None:
-                cond_logits, uncond_logits = logits.chunk(2)
-                logits = self.guidance(cond_logits, uncond_logits, scales[i].item())
-            tokens[:, t, i] = self.sampler.picker(logits, self.generator, self.gumbel(logits.shape[-1]))
-            x = self.embed_step(tokens, t)[:, net.m + i : net.m + i + 1]
+        logits = self.stream.feed(x)
+        tokens[:, t, 0] = first = self.pick(logits, scales, 0)
+        start = 1
+        if isinstance(self.stream, StaticStream):  # tokens 1.. by the fixed-shape step, the rest (if any) eagerly
+            start = self.stream.decode_frame(self, tokens, t, scales, first, logits.shape[-1])
+        for i in range(start, n):  # token i follows token i − 1, at position m + i − 1 of the step
+            x = self.embed_step(tokens, t)[:, net.m + i - 1 : net.m + i]
+            tokens[:, t, i] = self.pick(self.stream.feed(x), scales, i)
         self.tokens = tokens
         return tokens[:, t]
+
+    def pick(self, logits: torch.Tensor, scales: torch.Tensor | None, i: int) -> torch.Tensor:
+        """Token i of the frame (b,) from the streams' logits (B, V): guided by scales[i] (eq. 3), then picked."""
+        if self.guidance is not None:
+            cond_logits, uncond_logits = logits.chunk(2)
+            logits = self.guidance(cond_logits, uncond_logits, scales[i].item())
+        return self.sampler.picker(logits, self.generator, self.gumbel(logits.shape[-1]))
+
+    def open_stream(self) -> WindowStream | StaticStream:
+        """A new window's stream: on a fixed-shape step when the sampler asks for one (and it can have one)."""
+        if self.sampler.steps is not None:
+            stream = self.sampler.steps.stream(self, self.capacity)
+            if stream is not None:
+                return stream
+        return WindowStream(self.net, self.sampler.use_cache, self.capacity)
 
     def gumbel(self, vocabulary: int) -> torch.Tensor | None:
         """The next token's shared noise (b, V), or None when every row draws its own."""

@@ -76,6 +76,64 @@ class KVCache:
         return keys[:, :, begin : end + s], values[:, :, begin : end + s]
 
 
+class StaticKVCache(KVCache):
+    """A KVCache whose buffers never move, for a fixed-shape (graph-captured) decode step.
+
+    Every layer's keys and values (b, g, capacity, e) are allocated up front and kept for the cache's whole life
+    (`reset` empties it for the next session), so a captured graph can read and write them at fixed addresses.
+    The live positions always start at slot 0: `drop_front` shifts them forward in place (one copy per layer per
+    slide; a frame then decodes n tokens, so the copy is small next to them), which keeps the keys in the order an
+    eager KVCache holds them. It never grows: an append beyond `capacity` is a ValueError naming both sizes.
+    Eager appends (`update`, e.g. a prefill) and the captured step's in-place writes (`CausalSelfAttention.
+    decode_static`, followed by `advance`) share the buffers.
+    """
+
+    def __init__(self, layers: int, batch: int, kv_heads: int, head_dim: int, capacity: int,
+                 dtype: torch.dtype, device: torch.device) -> None:
+        super().__init__(capacity)
+        shape = (batch, kv_heads, capacity, head_dim)
+        # zeros, not empty: masked slots still enter SDPA's products (times 0), and stale NaNs would poison them
+        self.buffers = [(torch.zeros(shape, dtype=dtype, device=device), torch.zeros(shape, dtype=dtype, device=device))
+                        for _ in range(layers)]
+        self.begin, self.end = [0] * layers, [0] * layers
+
+    def reset(self) -> None:
+        """Forget every position (the buffers stay where they are)."""
+        self.begin, self.end, self.offset = [0] * len(self.buffers), [0] * len(self.buffers), 0
+
+    def drop_front(self, count: int) -> None:
+        """Forget the `count` oldest positions in every layer, moving the others to the front in place."""
+        if count > self.length:
+            raise ValueError(f"cannot drop {count} positions from a cache of {self.length}")
+        for layer, (keys, values) in enumerate(self.buffers):
+            end = self.end[layer]
+            for buffer in (keys, values):  # source and target overlap: copy through a temporary
+                buffer[:, :, : end - count] = buffer[:, :, count:end].clone()
+            self.end[layer] = end - count
+        self.offset += count
+
+    def advance(self, count: int) -> None:
+        """Count `count` positions the captured step wrote in place (at slot `length`) in every layer."""
+        if self.length + count > self.capacity:
+            raise ValueError(f"static KV cache: {self.length} + {count} positions exceed its capacity of "
+                             f"{self.capacity}")
+        self.end = [e + count for e in self.end]
+
+    def update(self, layer: int, k: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Append (b, g, s, e) keys/values of `layer` in place; return the live ones (b, g, p + s, e)."""
+        keys, values = self.buffers[layer]
+        end, s = self.end[layer], k.shape[2]
+        if end + s > self.capacity:
+            raise ValueError(f"static KV cache: {end} + {s} positions exceed its capacity of {self.capacity}")
+        if k.shape[:2] != keys.shape[:2] or k.dtype != keys.dtype:
+            raise ValueError(f"static KV cache holds {tuple(keys.shape)} {keys.dtype}, got keys {tuple(k.shape)} "
+                             f"{k.dtype}")
+        keys[:, :, end : end + s] = k
+        values[:, :, end : end + s] = v
+        self.end[layer] = end + s
+        return keys[:, :, : end + s], values[:, :, : end + s]
+
+
 def causal_mask(queries: int, past: int, device: torch.device) -> torch.Tensor:
     """(s, p + s) bool, True where query i (at absolute position p + i) may attend to key j."""
     q = torch.arange(queries, device=device)[:, None] + past
@@ -125,3 +183,24 @@ class CausalSelfAttention(nn.Module):
             mask = causal_mask(x.shape[1], past, x.device)
             out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=dropout, **gqa)
         return self.to_out(out.transpose(1, 2).reshape(b, s, -1))
+
+    def decode_static(self, x: torch.Tensor, keys: torch.Tensor, values: torch.Tensor, slot: torch.Tensor,
+                      rotary: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """One new position x: (b, 1, d) → (b, 1, d) against a static cache, in fixed shapes (graph-capturable).
+
+        keys, values: (b, g, C, e) buffers of a StaticKVCache; slot: 0-dim int64 tensor, the positions cached before
+        this one. The new key/value is written in place at `slot`; the query attends to all C slots with those after
+        `slot` masked, so neither the shapes nor the addresses change from token to token (gpt-fast's decode step).
+        """
+        b = x.shape[0]
+        q = self.to_q(x).view(b, 1, self.heads, self.head_dim).transpose(1, 2)  # (b, h, 1, e)
+        k, v = self.to_kv(x).view(b, 1, 2, self.kv_heads, self.head_dim).permute(2, 0, 3, 1, 4)  # (b, g, 1, e) each
+        if rotary is not None:
+            q, k = rotate(q, *rotary), rotate(k, *rotary)
+        index = slot.view(1)
+        keys[:, :, index] = k  # index_put_: stays in place when compiled (the cache is never copied)
+        values[:, :, index] = v
+        visible = (torch.arange(keys.shape[2], device=x.device) <= slot)[None]  # (1 query, C keys)
+        gqa = {"enable_gqa": True} if self.kv_heads != self.heads else {}
+        out = F.scaled_dot_product_attention(q, keys, values, attn_mask=visible, **gqa)
+        return self.to_out(out.transpose(1, 2).reshape(b, 1, -1))

@@ -34,8 +34,17 @@ class StepRotary(nn.Module):
 
     def forward(self, start: int, length: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
         """cos, sin (length, e) of positions start..start+length-1 (absolute, counting dropped ones)."""
-        steps = torch.div(torch.arange(start, start + length, device=device), self.step_len, rounding_mode="floor")
-        angles = steps[:, None].float() * self.inverse_frequency.to(device)[None]  # (s, e/2)
+        return self.table(torch.arange(start, start + length, device=device))
+
+    def at(self, position: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """cos, sin (1, e) of one absolute position given as a 0-dim int64 tensor (a fixed-shape decode step reads
+        its position from a tensor, so one captured graph serves every position)."""
+        return self.table(position.view(1))
+
+    def table(self, positions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """cos, sin (s, e) of absolute positions (s,) int64."""
+        steps = torch.div(positions, self.step_len, rounding_mode="floor")
+        angles = steps[:, None].float() * self.inverse_frequency.to(positions.device)[None]  # (s, e/2)
         angles = torch.cat([angles, angles], dim=-1)
         return angles.cos(), angles.sin()
 

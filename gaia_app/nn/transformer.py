@@ -7,12 +7,13 @@ Legend:
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
-from gaia_app.nn.attention import CausalSelfAttention, KVCache
+from gaia_app.nn.attention import CausalSelfAttention, KVCache, StaticKVCache
 from gaia_app.nn.rope import StepRotary
 
 
@@ -41,6 +42,12 @@ class TransformerBlock(nn.Module):
     def forward(self, x: torch.Tensor, cache: KVCache | None = None, layer: int = 0,
                 rotary: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         x = x + self.attn(self.norm1(x), cache, layer, rotary)
+        return x + self.mlp(self.norm2(x))
+
+    def decode_static(self, x: torch.Tensor, keys: torch.Tensor, values: torch.Tensor, slot: torch.Tensor,
+                      rotary: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """One position x: (b, 1, d) against this layer's static cache (CausalSelfAttention.decode_static)."""
+        x = x + self.attn.decode_static(self.norm1(x), keys, values, slot, rotary)
         return x + self.mlp(self.norm2(x))
 
 
@@ -74,6 +81,21 @@ class CausalTransformer(nn.Module):
             else:
                 x = block(x, cache, i, rotary)
         return self.norm(x)
+
+    def decode_static(self, x: torch.Tensor, buffers: Sequence[tuple[torch.Tensor, torch.Tensor]], slot: torch.Tensor,
+                      position: torch.Tensor) -> torch.Tensor:
+        """One position x: (b, 1, d) → (b, 1, d) in fixed shapes: buffers, one (keys, values) (b, g, C, e) per layer
+        (a StaticKVCache's), written in place at `slot`; slot, position: 0-dim int64 tensors, the cached positions
+        and the absolute position of x (for rotary time)."""
+        rotary = self.rotary.at(position) if self.rotary is not None else None
+        for block, (keys, values) in zip(self.blocks, buffers, strict=True):
+            x = block.decode_static(x, keys, values, slot, rotary)
+        return self.norm(x)
+
+    def static_cache(self, batch: int, capacity: int, dtype: torch.dtype, device: torch.device) -> StaticKVCache:
+        """An empty StaticKVCache for `batch` sequences of up to `capacity` positions."""
+        attn = self.blocks[0].attn
+        return StaticKVCache(len(self.blocks), batch, attn.kv_heads, attn.head_dim, capacity, dtype, device)
 
     def initialize_weights(self) -> None:
         """GPT-2 init: N(0, 0.02) weights, zero biases, residual projections scaled by 1/√(2·depth) (nanoGPT)."""

@@ -48,9 +48,12 @@ class RowwisePicker:
 
 
 def rowwise_rollouts(pipeline: Gaia1Pipeline) -> WorldModelRolloutPipeline:
-    """The pipeline's rollouts (net, cache setting, guidance, guided streams) with a `RowwisePicker`."""
+    """The pipeline's rollouts (net, cache and decode-step settings, guidance, guided streams) with a
+    `RowwisePicker`."""
     rollouts = pipeline.rollouts
-    sampler = AutoregressiveSampler(RowwisePicker(rollouts.sampler.picker), rollouts.sampler.use_cache)
+    base = rollouts.sampler
+    sampler = AutoregressiveSampler(RowwisePicker(base.picker), base.use_cache, decode_step=base.decode_step,
+                                    cache_capacity=base.cache_capacity)
     return WorldModelRolloutPipeline(rollouts.net, sampler, rollouts.guidance, rollouts.guided_streams)
 
 

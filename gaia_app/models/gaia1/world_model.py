@@ -19,7 +19,7 @@ import torch
 from einops import rearrange, repeat
 from torch import nn
 
-from gaia_app.nn.attention import KVCache
+from gaia_app.nn.attention import KVCache, StaticKVCache
 from gaia_app.nn.rope import StepRotary
 from gaia_app.nn.transformer import CausalTransformer, TransformerBlock
 
@@ -272,6 +272,34 @@ class WorldModel(nn.Module):
     def decode(self, x: torch.Tensor, cache: KVCache | None = None) -> torch.Tensor:
         """Hidden states (b, L, d) of embedded positions x: (b, L, d), after the cache's positions if given."""
         return self.transformer(x, cache)
+
+    def embed_token(self, tokens: torch.Tensor, slot: torch.Tensor, step: torch.Tensor, previous: torch.Tensor,
+                    previous_actions: torch.Tensor) -> torch.Tensor:
+        """The input (b, 1, d) of image token z_{step,slot}: what `embed` puts at position m + slot of window step
+        `step`, summed in the same order, with slot and step as 0-dim int64 tensors so that one fixed-shape decode
+        step serves every token. tokens: (b,) int64; previous: (b, n) tokens of step − 1 (previous-frame shortcut);
+        previous_actions: (b, l, d) its action tokens (action shortcut). For step ≥ 1 (`embed` gives step 0 none)."""
+        x = self.token_embedding(tokens)[:, None] + self.spatial.index_select(0, (self.m + slot).view(1))
+        if self.temporal_encoding == "learned":
+            x = x + self.temporal.index_select(0, step.view(1))
+        feeds = slot + 1 < self.n  # this position predicts z_{step,slot+1}; the last image token predicts none
+        if self.previous_frame_shortcut:  # embedding of z_{step−1,slot+1}, see `shortcut`
+            earlier = self.token_embedding(previous.index_select(1, (slot + 1).clamp(max=self.n - 1).view(1)))
+            x = x + torch.where(feeds, earlier, torch.zeros_like(earlier))
+        if self.action_shortcut:  # the summed actions of step − 1, see `shortcut_actions`
+            earlier = previous_actions.sum(1)[:, None]
+            x = x + torch.where(feeds, earlier, torch.zeros_like(earlier))
+        return x
+
+    def decode_token(self, x: torch.Tensor, buffers: Sequence[tuple[torch.Tensor, torch.Tensor]], slot: torch.Tensor,
+                     position: torch.Tensor) -> torch.Tensor:
+        """Hidden state (b, d) of one embedded position x: (b, 1, d) in fixed shapes, against a StaticKVCache's
+        buffers (written in place at `slot`); position: its absolute position (rotary time)."""
+        return self.transformer.decode_static(x, buffers, slot, position)[:, -1]
+
+    def static_cache(self, batch: int, capacity: int, dtype: torch.dtype, device: torch.device) -> StaticKVCache:
+        """An empty StaticKVCache of `capacity` positions for a batch of `batch` sequences."""
+        return self.transformer.static_cache(batch, capacity, dtype, device)
 
     def forward(self, tokens: torch.Tensor, cond: Conditions) -> torch.Tensor:
         """Next-image-token logits, aligned with their targets: tokens (b, t, n) → (b, t, n, V).
