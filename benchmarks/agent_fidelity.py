@@ -2,6 +2,7 @@ r"""Agent fidelity of a tokenizer: do the tokens keep the other road users? (GAI
 
     python benchmarks/agent_fidelity.py --weights gaia1 --json outputs/agent_fidelity/gaia1.json
     python benchmarks/agent_fidelity.py --weights gaia2 --train-probe   # a probe of its own (written to --out)
+    python benchmarks/agent_fidelity.py --weights <run>/checkpoints/last.ckpt --against gaia1   # side by side
 
 On --clips held-out clips of a synthetic world used for nothing else (--world-seed), at the family's frame rate
 (GAIA-1 6.25 Hz, GAIA-2 12.5 Hz), with that world's own instance masks, 2D boxes and lead agent (gaia_app/eval/agent_fidelity.py):
@@ -12,6 +13,8 @@ On --clips held-out clips of a synthetic world used for nothing else (--world-se
 - lead-vehicle presence: of the frames with a vehicle within 30 m ahead in the ego lane, the share in which the
   probe covers at least half of it, on real and on tokenized frames.
 Also the tokenizer's PSNR/SSIM (and LPIPS) on every video under --real-dir (real dashcam clips it never trained on).
+With --against, a second tokenizer's round trips of the same clips are scored in the same run, and the difference of
+the two ratios gets a paired bootstrap interval (the clips resampled once for both).
 
 The probe is the shipped one (gaia_app/weights/probes, trained on 1 024 clips of world 4901), so every tokenizer is
 scored by the same reader; --train-probe trains one on a world of its own (--probe-seed, --probe-clips scenes,
@@ -36,8 +39,9 @@ from gaia_app.data.datasets import fit_to_resolution
 from gaia_app.data.transforms import resample_clip, to_float
 from gaia_app.data.video_io import read_video, video_info
 from gaia_app.encoders.perceptual import load_perceptual
-from gaia_app.eval.agent_fidelity import (FidelityFrames, fidelity_frames, finite_interval, iou_ratio, lead_found,
-                                          lead_share, per_clip_overlap, region_lpips, region_psnr)
+from gaia_app.eval.agent_fidelity import (FidelityFrames, fidelity_frames, finite_interval, iou_ratio,
+                                          iou_ratio_difference, lead_found, lead_share, per_clip_overlap, region_lpips,
+                                          region_psnr)
 from gaia_app.eval.agent_iou import load_agent_probe, predicted_agents, save_agent_probe, train_agent_probe
 from gaia_app.eval.metrics import psnr, ssim
 from gaia_app.models.probes import AgentSegmentationProbe
@@ -53,6 +57,9 @@ PROBE_WIDTHS = (16, 32, 64)
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--weights", required=True, help="gaia1, gaia2, a folder of exported weights or a tokenizer .ckpt")
+    p.add_argument("--against", default=None,
+                   help="a second tokenizer of the same family, scored on the same clips in this run: its agent "
+                        "scores and the paired difference of agent_iou_ratio (--weights minus --against)")
     p.add_argument("--json", type=Path, default=None, help="write the results here")
     p.add_argument("--out", type=Path, default=Path("outputs/agent_fidelity/probe"), help="where --train-probe writes")
     p.add_argument("--clips", type=int, default=64, help="held-out clips")
@@ -203,25 +210,59 @@ def markdown(family: str, result: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def against_round_trip(args: argparse.Namespace, family: str) -> Any:
+    """--against's round trip (None without it), refused before any work when its family is not --weights'."""
+    if args.against is None:
+        return None
+    other_family, round_trip = tokenizer_round_trip(args.against)
+    if other_family != family:
+        raise SystemExit(f"--against {args.against} is a {other_family} tokenizer; --weights {args.weights} is {family}")
+    return round_trip
+
+
+def against(args: argparse.Namespace, round_trip: Any, probe: AgentSegmentationProbe, held: FidelityFrames,
+            tokenized: torch.Tensor, lpips: Any) -> dict[str, Any]:
+    """--against's tokenizer on the same clips: its scores and the paired difference of the two agent_iou_ratios."""
+    other = round_trips(round_trip, held, f"{args.against} round trips")
+    counts = [per_clip_overlap(predicted_agents(probe, frames), held.agents) for frames in (held.frames, tokenized, other)]
+    return {"weights": args.against, "scores": score(probe, held, other, lpips),
+            "agent_iou_ratio_difference": iou_ratio_difference(*counts).as_dict()}
+
+
+def round_trips(round_trip: Any, held: FidelityFrames, desc: str) -> torch.Tensor:
+    """The held-out frames (N, t, 3, H, W) through a tokenizer, 8 clips at a time."""
+    return torch.cat([round_trip(v) for v in tqdm(held.frames.split(8), desc=desc)])
+
+
+def against_markdown(result: dict[str, Any]) -> str:
+    a, d = result["against"], result["against"]["agent_iou_ratio_difference"]
+    r = a["scores"]["agent_iou_ratio"]
+    return (f"\nagainst {a['weights']} on the same clips: agent_iou_ratio {r['mean']:.3f} [{r['low']:.3f}, {r['high']:.3f}]; "
+            f"difference (--weights − --against, paired over clips): **{d['mean']:+.3f} [{d['low']:+.3f}, {d['high']:+.3f}]**\n")
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = parse_args(argv)
     family, round_trip = tokenizer_round_trip(args.weights)
+    other_round_trip = against_round_trip(args, family)
     lpips = None
     if args.lpips_checkpoint is not None:
         lpips = load_perceptual("vgg16", args.lpips_checkpoint, args.lpips_heads, config_key="--lpips-checkpoint")
     probe, probe_info = agent_probe(args)
     rate = RATES[family]
     held = labelled_world(args.world_seed, args.clips, args.frames, rate, "render the held-out world")
-    tokenized = torch.cat([round_trip(v) for v in tqdm(held.frames.split(8), desc=f"{family} round trips")])
+    tokenized = round_trips(round_trip, held, f"{family} round trips")
     result = {"weights": args.weights, "family": family, "clips": args.clips, "frames": args.frames, "rate": rate,
               "world_seed": args.world_seed, "probe": probe_info, "scores": score(probe, held, tokenized, lpips),
               "real_videos": real_clip_rows(round_trip, real_videos(args.real_dir, args.real_frames, rate), lpips)
               if args.real_dir.is_dir() else {}}
     result["agent_iou_ratio"] = result["scores"]["agent_iou_ratio"]["mean"]
+    if other_round_trip is not None:
+        result["against"] = against(args, other_round_trip, probe, held, tokenized, lpips)
     if result["scores"]["agent_iou"]["real"] < 0.6:
         print(f"warning: the probe reads agent IoU {result['scores']['agent_iou']['real']:.3f} on real frames, "
               "below its 0.6 ceiling target: train it longer or on more scenes", file=sys.stderr)
-    print(markdown(family, result))
+    print(markdown(family, result) + (against_markdown(result) if "against" in result else ""))
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=2) + "\n")

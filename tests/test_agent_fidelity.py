@@ -14,8 +14,19 @@ import torch
 
 from gaia_app.data.synthetic import SyntheticClipDataset
 from gaia_app.encoders.perceptual import load_perceptual
-from gaia_app.eval.agent_fidelity import (LEAD_RANGE, box_mask, check_labels, fidelity_frames, iou_ratio, lead_found,
-                                          lead_mask, lead_share, per_clip_overlap, region_lpips, region_psnr)
+from gaia_app.eval.agent_fidelity import (
+    LEAD_RANGE,
+    box_mask,
+    check_labels,
+    fidelity_frames,
+    iou_ratio, iou_ratio_difference,
+    lead_found,
+    lead_mask,
+    lead_share,
+    per_clip_overlap,
+    region_lpips,
+    region_psnr,
+)
 from gaia_app.eval.agent_iou import load_agent_probe, predicted_agents, save_agent_probe
 from gaia_app.models.probes import AgentSegmentationProbe
 from gaia_app.nn.vgg import VGG16Features
@@ -97,6 +108,22 @@ def test_iou_ratio_of_a_copy_is_one_and_of_half_the_agents_about_half() -> None:
     assert ratio.mean == pytest.approx(0.5) and ratio.low <= 0.5 <= ratio.high and ratio.n == 6
 
 
+def test_paired_ratio_difference_of_two_tokenizers_is_the_difference_of_their_ratios() -> None:
+    truth = torch.zeros(8, 2, 8, 8, dtype=torch.bool)
+    truth[:, :, 2:6, 2:6] = True
+    real = per_clip_overlap(truth.clone(), truth)
+    half = truth.clone()
+    half[:, :, 2:6, 4:6] = False
+    half[::2, :, 2:6, 4:6] = True  # half the clips keep every agent: the ratio varies over clips
+    halves = per_clip_overlap(half, truth)
+    difference = iou_ratio_difference(real, real, halves)
+    assert difference.mean == pytest.approx(1.0 - iou_ratio(real, halves).mean)
+    assert 0 < difference.low <= difference.mean <= difference.high and difference.n == 8
+    assert iou_ratio_difference(real, halves, halves).high == pytest.approx(0.0)  # paired: a tie has no spread
+    with pytest.raises(ValueError, match="equal 1-D per-clip counts"):
+        iou_ratio_difference(real, halves, (halves[0][:4], halves[1][:4]))
+
+
 def test_lead_found_needs_half_of_the_vehicle_covered() -> None:
     lead = torch.zeros(2, 3, 4, 4, dtype=torch.bool)
     lead[0, :, 0, :] = True  # clip 0: a lead vehicle of 4 pixels in every frame; clip 1: none
@@ -136,6 +163,18 @@ def test_benchmark_scores_both_families_with_one_probe(tmp_path: Path) -> None:
     assert written["probe"]["steps"] == 3 and written["rate"] == 6.25
     second = bench.main(["--weights", "gaia2", "--probe", str(tmp_path / "probe"), *common])
     assert second["family"] == "gaia2" and second["rate"] == 12.5 and second["probe"]["world_seed"] == 4901
+
+
+def test_benchmark_scores_a_second_tokenizer_side_by_side(tmp_path: Path) -> None:
+    bench = benchmark()
+    common = ["--clips", "2", "--real-dir", str(tmp_path / "none")]
+    result = bench.main(["--weights", "gaia1", "--against", "gaia1", "--json", str(tmp_path / "both.json"), *common])
+    against = json.loads((tmp_path / "both.json").read_text())["against"]
+    assert against["weights"] == "gaia1"
+    assert against["scores"]["agent_iou_ratio"]["mean"] == pytest.approx(result["agent_iou_ratio"])
+    assert against["agent_iou_ratio_difference"]["mean"] == pytest.approx(0.0, abs=1e-9)
+    with pytest.raises(SystemExit, match="--against gaia2 is a gaia2 tokenizer; --weights gaia1 is gaia1"):
+        bench.main(["--weights", "gaia1", "--against", "gaia2", *common])
 
 
 def test_the_shipped_probe_reads_agents_on_held_out_frames() -> None:

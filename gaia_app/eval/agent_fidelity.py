@@ -147,17 +147,42 @@ def iou_ratio(real: tuple[np.ndarray, np.ndarray], tokenized: tuple[np.ndarray, 
               seed: int = 0) -> Estimate:
     """(Σ I_tok / Σ U_tok) ÷ (Σ I_real / Σ U_real) over clips from per-clip (intersection, union) counts, with a 95 %
     percentile bootstrap over clips (both IoUs resampled together)."""
-    counts = [np.asarray(c, dtype=float) for c in (*tokenized, *real)]
+    i_r, u_r, i_t, u_t = overlap_counts(real, tokenized)
+    return bootstrap(lambda index: pooled_iou(i_t, u_t, index) / pooled_iou(i_r, u_r, index, floor=1e-12),
+                     len(i_r), resamples, seed)
+
+
+def iou_ratio_difference(real: tuple[np.ndarray, np.ndarray], first: tuple[np.ndarray, np.ndarray],
+                         second: tuple[np.ndarray, np.ndarray], resamples: int = 2000, seed: int = 0) -> Estimate:
+    """agent_iou_ratio of `first` minus that of `second` (two tokenizers' round trips of the same clips), with a
+    paired 95 % bootstrap: each draw resamples the clips once, for both tokenizers and the real frames they share."""
+    i_r, u_r, i_a, u_a, i_b, u_b = overlap_counts(real, first, second)
+
+    def difference(index: np.ndarray) -> np.ndarray:
+        real_iou = pooled_iou(i_r, u_r, index, floor=1e-12)
+        return (pooled_iou(i_a, u_a, index) - pooled_iou(i_b, u_b, index)) / real_iou
+
+    return bootstrap(difference, len(i_r), resamples, seed)
+
+
+def overlap_counts(*pairs: tuple[np.ndarray, np.ndarray]) -> list[np.ndarray]:
+    """Per-clip (intersection, union) pairs → one flat list [I, U, I, U, ...] of equal 1-D float arrays."""
+    counts = [np.asarray(c, dtype=float) for pair in pairs for c in pair]
     if len({c.shape for c in counts}) != 1 or counts[0].ndim != 1:
         raise ValueError(f"iou_ratio needs equal 1-D per-clip counts, got {[c.shape for c in counts]}")
+    return counts
 
-    def ratio(index: np.ndarray) -> np.ndarray:
-        i_t, u_t, i_r, u_r = (c[index].sum(-1) for c in counts)
-        return (i_t / np.maximum(u_t, 1e-12)) / np.maximum(i_r / np.maximum(u_r, 1e-12), 1e-12)
 
-    n = len(counts[0])
-    point = float(ratio(np.arange(n)[None])[0])
-    draws = ratio(np.random.default_rng(seed).integers(0, n, size=(resamples, n)))
+def pooled_iou(intersection: np.ndarray, union: np.ndarray, index: np.ndarray, floor: float = 0.0) -> np.ndarray:
+    """Σ I / Σ U over the clips of each row of index (draws, n) → (draws,), at least `floor`."""
+    return np.maximum(intersection[index].sum(-1) / np.maximum(union[index].sum(-1), 1e-12), floor)
+
+
+def bootstrap(statistic: Callable[[np.ndarray], np.ndarray], n: int, resamples: int, seed: int) -> Estimate:
+    """statistic over all n clips, with the 95 % percentile interval of `resamples` draws of n clips with
+    replacement. statistic: index (draws, n) int → (draws,)."""
+    point = float(statistic(np.arange(n)[None])[0])
+    draws = statistic(np.random.default_rng(seed).integers(0, n, size=(resamples, n)))
     return Estimate(point, float(np.quantile(draws, 0.025)), float(np.quantile(draws, 0.975)), n)
 
 
