@@ -8,7 +8,7 @@ CONSTRAINTS := requirements/constraints.txt
 DEMO_DIR := outputs/demo
 PYTEST_ARGS ?=
 
-.PHONY: demo demo-train test install install-dev benchmarks clean reproduce
+.PHONY: demo demo-train test lint install install-dev benchmarks clean reproduce
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -100,11 +100,15 @@ demo-train: install
 reproduce: install
 	$(PY) -m gaia_app.tasks.reproduce --out outputs/reference --weights gaia_app/weights/gaia1 $(if $(GPU),--gpu)
 
-# one pytest-xdist worker per logical CPU (TEST_WORKERS=0 runs in one process); --dist loadscope keeps each test module
+# lint first (ruff, [tool.ruff] in pyproject.toml: a lint error fails the target before any test runs), then one
+# pytest-xdist worker per logical CPU (TEST_WORKERS=0 runs in one process); --dist loadscope keeps each test module
 # on one worker, so module-scoped fixtures (trained tiny models) are built once
 TEST_WORKERS ?= logical
-test: install-dev
+test: install-dev lint
 	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadscope $(PYTEST_ARGS)
+
+lint: install-dev
+	$(VENV)/bin/ruff check .
 
 benchmarks: install-dev
 	$(PY) benchmarks/bench_synthetic.py

@@ -5,7 +5,8 @@ r"""Agent fidelity of a tokenizer: do the tokens keep the other road users? (GAI
     python benchmarks/agent_fidelity.py --weights <run>/checkpoints/last.ckpt --against gaia1   # side by side
 
 On --clips held-out clips of a synthetic world used for nothing else (--world-seed), at the family's frame rate
-(GAIA-1 6.25 Hz, GAIA-2 12.5 Hz), with that world's own instance masks, 2D boxes and lead agent (gaia_app/eval/agent_fidelity.py):
+(GAIA-1 6.25 Hz, GAIA-2 12.5 Hz), with that world's own instance masks, 2D boxes and lead agent
+(gaia_app/eval/agent_fidelity.py):
 - agent IoU of the segmentation probe on the real frames (the probe's ceiling: it should reach 0.6) and on the
   tokenizer's round trips, and `agent_iou_ratio` = tokenized ÷ real with a bootstrap interval over clips;
 - PSNR (and LPIPS with --lpips-checkpoint: local VGG16 weights, optional --lpips-heads) inside the agents' boxes
@@ -18,7 +19,8 @@ the two ratios gets a paired bootstrap interval (the clips resampled once for bo
 
 The probe is the shipped one (gaia_app/weights/probes, trained on 1 024 clips of world 4901), so every tokenizer is
 scored by the same reader; --train-probe trains one on a world of its own (--probe-seed, --probe-clips scenes,
---probe-steps, the `sharp` recipe of `train_agent_probe`, 4 min on 2 cores) and writes it to OUT for --probe. Target: agent_iou_ratio ≥ 0.8 for GAIA-1 and for GAIA-2.
+--probe-steps, the `sharp` recipe of `train_agent_probe`, 4 min on 2 cores) and writes it to OUT for --probe.
+Target: agent_iou_ratio ≥ 0.8 for GAIA-1 and for GAIA-2.
 """
 
 from __future__ import annotations
@@ -34,14 +36,23 @@ import torch
 from tqdm import tqdm
 
 from gaia_app.data.clip import Clip
-from gaia_app.data.synthetic import SyntheticClipDataset
 from gaia_app.data.datasets import fit_to_resolution
+from gaia_app.data.synthetic import SyntheticClipDataset
 from gaia_app.data.transforms import resample_clip, to_float
 from gaia_app.data.video_io import read_video, video_info
 from gaia_app.encoders.perceptual import load_perceptual
-from gaia_app.eval.agent_fidelity import (FidelityFrames, fidelity_frames, finite_interval, iou_ratio,
-                                          iou_ratio_difference, lead_found, lead_share, per_clip_overlap, region_lpips,
-                                          region_psnr)
+from gaia_app.eval.agent_fidelity import (
+    FidelityFrames,
+    fidelity_frames,
+    finite_interval,
+    iou_ratio,
+    iou_ratio_difference,
+    lead_found,
+    lead_share,
+    per_clip_overlap,
+    region_lpips,
+    region_psnr,
+)
 from gaia_app.eval.agent_iou import load_agent_probe, predicted_agents, save_agent_probe, train_agent_probe
 from gaia_app.eval.metrics import psnr, ssim
 from gaia_app.models.probes import AgentSegmentationProbe
@@ -63,14 +74,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--json", type=Path, default=None, help="write the results here")
     p.add_argument("--out", type=Path, default=Path("outputs/agent_fidelity/probe"), help="where --train-probe writes")
     p.add_argument("--clips", type=int, default=64, help="held-out clips")
-    p.add_argument("--frames", type=int, default=8, help="frames per clip at the family's rate (a multiple of GAIA-2's τ = 4)")
+    p.add_argument("--frames", type=int, default=8,
+                   help="frames per clip at the family's rate (a multiple of GAIA-2's τ = 4)")
     p.add_argument("--world-seed", type=int, default=4949, help="the held-out world (used for nothing else)")
     p.add_argument("--probe", default="probes", help="weights folder of the agent probe (default: the shipped one)")
     p.add_argument("--train-probe", action="store_true", help="train a probe on the probe world instead")
     p.add_argument("--probe-seed", type=int, default=4901, help="the probe's training world")
     p.add_argument("--probe-clips", type=int, default=1024)
     p.add_argument("--probe-steps", type=int, default=3000)
-    p.add_argument("--real-dir", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real")
+    p.add_argument("--real-dir", type=Path,
+                   default=Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real")
     p.add_argument("--real-frames", type=int, default=16, help="frames per real video at the family's rate")
     p.add_argument("--lpips-checkpoint", type=Path, default=None, help="local VGG16 weights (torchvision layout)")
     p.add_argument("--lpips-heads", type=Path, default=None, help="local LPIPS heads (vgg.pth of PerceptualSimilarity)")
@@ -178,8 +191,8 @@ def score(probe: AgentSegmentationProbe, held: FidelityFrames, tokenized: torch.
     out["psnr_in_boxes"] = finite_interval(region_psnr(tokenized, held.frames, held.boxes)).as_dict()
     out["psnr_background"] = finite_interval(region_psnr(tokenized, held.frames, background)).as_dict()
     if lpips is not None:
-        out["lpips_in_boxes"] = finite_interval(region_lpips(lpips.distance_map, tokenized, held.frames, held.boxes)).as_dict()
-        out["lpips_background"] = finite_interval(region_lpips(lpips.distance_map, tokenized, held.frames, background)).as_dict()
+        for name, region in (("lpips_in_boxes", held.boxes), ("lpips_background", background)):
+            out[name] = finite_interval(region_lpips(lpips.distance_map, tokenized, held.frames, region)).as_dict()
     out["lead_presence"] = {k: lead_share(*lead_found(v, held.lead)).as_dict() for k, v in predicted.items()}
     out["lead_frames"] = int(held.lead.any(dim=(2, 3)).sum())
     return out
@@ -203,10 +216,12 @@ def markdown(family: str, result: dict[str, Any]) -> str:
         lines.append(f"| LPIPS ↓ | {est(s['lpips_in_boxes'])} | {est(s['lpips_background'])} |")
     if result["real_videos"]:
         lines += ["", "| real video (never trained on) | frames (Hz) | PSNR ↑ | SSIM ↑ |"
-                  + (" LPIPS ↓ |" if "lpips_in_boxes" in s else ""), "|---|---|---|---|" + ("---|" if "lpips_in_boxes" in s else "")]
+                  + (" LPIPS ↓ |" if "lpips_in_boxes" in s else ""),
+                  "|---|---|---|---|" + ("---|" if "lpips_in_boxes" in s else "")]
         for name, row in result["real_videos"].items():
             extra = f" {row['lpips']:.3f} |" if "lpips" in row else ""
-            lines.append(f"| {name} | {row['frames']} ({row['fps']:g}) | {row['psnr']:.2f} | {row['ssim']:.3f} |{extra}")
+            lines.append(f"| {name} | {row['frames']} ({row['fps']:g}) | {row['psnr']:.2f} | "
+                         f"{row['ssim']:.3f} |{extra}")
     return "\n".join(lines) + "\n"
 
 
@@ -216,7 +231,8 @@ def against_round_trip(args: argparse.Namespace, family: str) -> Any:
         return None
     other_family, round_trip = tokenizer_round_trip(args.against)
     if other_family != family:
-        raise SystemExit(f"--against {args.against} is a {other_family} tokenizer; --weights {args.weights} is {family}")
+        raise SystemExit(f"--against {args.against} is a {other_family} tokenizer; "
+                         f"--weights {args.weights} is {family}")
     return round_trip
 
 
@@ -224,7 +240,8 @@ def against(args: argparse.Namespace, round_trip: Any, probe: AgentSegmentationP
             tokenized: torch.Tensor, lpips: Any) -> dict[str, Any]:
     """--against's tokenizer on the same clips: its scores and the paired difference of the two agent_iou_ratios."""
     other = round_trips(round_trip, held, f"{args.against} round trips")
-    counts = [per_clip_overlap(predicted_agents(probe, frames), held.agents) for frames in (held.frames, tokenized, other)]
+    counts = [per_clip_overlap(predicted_agents(probe, frames), held.agents)
+              for frames in (held.frames, tokenized, other)]
     return {"weights": args.against, "scores": score(probe, held, other, lpips),
             "agent_iou_ratio_difference": iou_ratio_difference(*counts).as_dict()}
 
@@ -237,8 +254,9 @@ def round_trips(round_trip: Any, held: FidelityFrames, desc: str) -> torch.Tenso
 def against_markdown(result: dict[str, Any]) -> str:
     a, d = result["against"], result["against"]["agent_iou_ratio_difference"]
     r = a["scores"]["agent_iou_ratio"]
-    return (f"\nagainst {a['weights']} on the same clips: agent_iou_ratio {r['mean']:.3f} [{r['low']:.3f}, {r['high']:.3f}]; "
-            f"difference (--weights − --against, paired over clips): **{d['mean']:+.3f} [{d['low']:+.3f}, {d['high']:+.3f}]**\n")
+    return (f"\nagainst {a['weights']} on the same clips: agent_iou_ratio "
+            f"{r['mean']:.3f} [{r['low']:.3f}, {r['high']:.3f}]; difference (--weights − --against, paired over "
+            f"clips): **{d['mean']:+.3f} [{d['low']:+.3f}, {d['high']:+.3f}]**\n")
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:

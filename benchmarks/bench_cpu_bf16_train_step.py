@@ -44,7 +44,8 @@ def make_step(net: WorldModel, batch: int, dtype: torch.dtype | None, seed: int)
     """One training step under autocast to `dtype` (None: float32) → (seconds, loss)."""
     generator = torch.Generator().manual_seed(seed)
     tokens = torch.randint(0, net.vocab_size, (batch, net.frames, net.n), generator=generator)
-    actions = torch.randn(batch, net.frames, 2, generator=generator) * torch.tensor([3.0, 0.02]) + torch.tensor([10.0, 0.0])
+    actions = (torch.randn(batch, net.frames, 2, generator=generator) * torch.tensor([3.0, 0.02])
+               + torch.tensor([10.0, 0.0]))
     optimizer = torch.optim.AdamW(net.parameters(), lr=1e-4, weight_decay=0.1, betas=(0.9, 0.95))
 
     def step() -> tuple[float, float]:

@@ -37,7 +37,8 @@ PAPER_LAYOUT = {"frames": 26, "text_tokens": 32, "image_tokens": 576, "action_to
 SMOKE_LAYOUT = {"frames": 3, "text_tokens": 2, "image_tokens": 12, "action_tokens": 2, "vocab_size": 64}
 
 
-def build(size: str, layout: dict[str, int], frames: int, device: torch.device, checkpointing: bool = False) -> WorldModel:
+def build(size: str, layout: dict[str, int], frames: int, device: torch.device,
+          checkpointing: bool = False) -> WorldModel:
     dim, depth, heads, kv_heads = SIZES[size]
     net = WorldModel(dim=dim, depth=depth, heads=heads, kv_heads=kv_heads, text_dim=dim,
                      **{**layout, "frames": frames}).to(device)
@@ -94,7 +95,8 @@ def throughput(args: argparse.Namespace, device: torch.device) -> dict[str, Any]
     positions = args.batch * net.frames * net.step_len
     return {"size": size, "parameters": sum(p.numel() for p in net.parameters()),
             "non_embedding": non_embedding_parameters(net, WorldModel.block_types), "batch": args.batch,
-            "sequence": net.frames * net.step_len, "seconds_per_step": seconds, "positions_per_second": positions / seconds,
+            "sequence": net.frames * net.step_len, "seconds_per_step": seconds,
+            "positions_per_second": positions / seconds,
             "model_tflops": flops / seconds / 1e12, "mfu": flops / seconds / (args.peak_tflops * 1e12)}
 
 
@@ -112,7 +114,8 @@ def peak_memory(args: argparse.Namespace, device: torch.device) -> dict[str, Any
             torch.cuda.empty_cache()
             torch.cuda.reset_peak_memory_stats(device)
         try:
-            seconds = timed_steps(lambda: train_step(net, optimizer, 1, device), device, 1, 1)
+            # the lambda runs before the `del` below, which pyflakes reads as a use after deletion
+            seconds = timed_steps(lambda: train_step(net, optimizer, 1, device), device, 1, 1)  # noqa: F821
             peak = torch.cuda.max_memory_allocated(device) / 2**30 if device.type == "cuda" else None  # CUDA only
             result[key] = {"peak_gib": peak, "seconds_per_step": seconds}
         except torch.OutOfMemoryError:
@@ -134,10 +137,11 @@ def generation(args: argparse.Namespace, device: torch.device) -> dict[str, Any]
 
         def rollout() -> None:
             with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16):
-                sampler(net, context, cond, frames=args.generate)
+                sampler(net, context, cond, frames=args.generate)  # noqa: F821  (runs before the `del net` below)
 
         seconds = timed_steps(rollout, device, 1, args.repeats)
-        result[size] = {"parameters": sum(p.numel() for p in net.parameters()), "kv_heads": SIZES[size][3] or SIZES[size][2],
+        result[size] = {"parameters": sum(p.numel() for p in net.parameters()),
+                        "kv_heads": SIZES[size][3] or SIZES[size][2],
                         "frames_per_second": args.generate / seconds}
         del net
     return result

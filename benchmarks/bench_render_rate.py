@@ -48,7 +48,8 @@ def main() -> None:
             seconds[name].append(time.perf_counter() - start)
     same = torch.equal(*frames.values())
     full, cheap = (statistics.median(s) for s in seconds.values())
-    print(f"{args.clips} clips + {args.clips} re-simulations of {STEPS} steps at {RATE:g} Hz, medians of {args.repeats}:")
+    print(f"{args.clips} clips + {args.clips} re-simulations of {STEPS} steps at {RATE:g} Hz, "
+          f"medians of {args.repeats}:")
     for name, s in seconds.items():
         print(f"  {name}: {statistics.median(s):.2f} s ({', '.join(f'{x:.2f}' for x in s)})")
     print(f"speed-up {full / cheap:.2f}×; identical frames: {same}")

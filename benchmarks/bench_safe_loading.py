@@ -54,7 +54,8 @@ def checkpoint_files(folder: Path) -> tuple[Path, Path]:
     import torch.distributed.checkpoint as dcp
     from safetensors.torch import load_file
 
-    state = {f"net.{k}": v.float() for k, v in load_file(str(WEIGHTS_ROOT / "gaia1" / "world_model.safetensors")).items()}
+    state = {f"net.{k}": v.float()
+             for k, v in load_file(str(WEIGHTS_ROOT / "gaia1" / "world_model.safetensors")).items()}
     config = yaml.safe_load((WEIGHTS_ROOT / "gaia1" / "world_model.yaml").read_text())
     checkpoint = {"state_dict": state, "hyper_parameters": {"model_cfg": {"net": config["nets"]["net"]}},
                   "epoch": 0, "global_step": 0}
@@ -91,7 +92,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    print(f"medians of {args.repeats}, one thread\n\n| load | checked (ms) | unchecked (ms) | ratio |\n|---|---:|---:|---:|")
+    print(f"medians of {args.repeats}, one thread\n\n"
+          "| load | checked (ms) | unchecked (ms) | ratio |\n|---|---:|---:|---:|")
     pairs: dict[str, tuple[Callable[[], object], Callable[[], object]]] = {}
     for family, component in COMPONENTS:
         path = WEIGHTS_ROOT / family / f"{component}.yaml"

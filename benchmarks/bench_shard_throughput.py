@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from gaia_app.data.clip_writer import write_clip
 from gaia_app.data.clip_folder import ClipFolderDataset
+from gaia_app.data.clip_writer import write_clip
 from gaia_app.data.datamodules import ClipDataModule, TokenCacheDataModule
 from gaia_app.data.shard import write_shards
 from gaia_app.data.shards import ClipShardDataModule, TokenShardDataModule
@@ -96,7 +96,8 @@ def main() -> None:
     clips = out / "clips"
     if not clips.exists():
         make_clips(clips, args.clips)
-    write_shards("clips", clips, out / "clip_shards", args.shard_size, val_fraction=0.1, split_by="clip", progress=False)
+    write_shards("clips", clips, out / "clip_shards", args.shard_size, val_fraction=0.1, split_by="clip",
+                 progress=False)
     window = {"seq_len": 26, "stride": args.stride}
     video = {"clip_len": 16, "fps": 6.25, "height": 288, "width": 512}
     results = {
@@ -104,10 +105,12 @@ def main() -> None:
         "paper_rate_per_gpu": PAPER_RATE / 64,
         "tokens": compare("token cache (26-step windows)",
                           lambda: TokenCacheDataModule(str(tokens), val_fraction=0.1, **window, **common),
-                          lambda: TokenShardDataModule(str(out / "token_shards"), shuffle_buffer=1024, **window, **common),
+                          lambda: TokenShardDataModule(str(out / "token_shards"), shuffle_buffer=1024, **window,
+                                                       **common),
                           "tokens", args.repeats),
         "clips": compare("288×512 clips (16 frames at 6.25 Hz)",
-                         lambda: ClipDataModule(ClipFolderDataset(clips), val_fraction=0.1, split_by="clip", **video, **common),
+                         lambda: ClipDataModule(ClipFolderDataset(clips), val_fraction=0.1, split_by="clip", **video,
+                                                **common),
                          lambda: ClipShardDataModule(str(out / "clip_shards"), shuffle_buffer=16, **video, **common),
                          "video", args.repeats),
         "settings": vars(args),

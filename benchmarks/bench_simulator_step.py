@@ -114,7 +114,8 @@ def main() -> None:
         row["session_over_window_per_step"] = row["session"]["frames_per_s"] / row["window per step"]["frames_per_s"]
         results[label] = row
         for name in envs:
-            print(f"{label} {name}: {row[name]['frames_per_s']:.2f} frames/s ({row[name]['real_time_ratio']:.2f}× real time)")
+            print(f"{label} {name}: {row[name]['frames_per_s']:.2f} frames/s "
+                  f"({row[name]['real_time_ratio']:.2f}× real time)")
         print(f"{label}: session / window per step {row['session_over_window_per_step']:.2f}×")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2))

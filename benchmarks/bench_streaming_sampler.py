@@ -57,7 +57,8 @@ class StaticGPT(nn.Module):
         attn = net.transformer.blocks[0].attn
         shape = (batch, attn.kv_heads, max_positions, attn.head_dim)
         device = net.head.weight.device
-        self.caches = [(torch.zeros(shape, device=device), torch.zeros(shape, device=device)) for _ in net.transformer.blocks]
+        self.caches = [(torch.zeros(shape, device=device), torch.zeros(shape, device=device))
+                       for _ in net.transformer.blocks]
 
     def attend(self, block: nn.Module, x: torch.Tensor, layer: int, position: int, rotary: Any) -> torch.Tensor:
         attn = block.attn

@@ -55,7 +55,8 @@ def matched_plain(target_macs: int, latent_dim: int, probe: torch.Tensor) -> tup
     # MACs depend on shapes only: count them on the meta device, without computing anything
     with torch.device("meta"):
         meta_probe = torch.empty(probe.shape)
-        best = min(range(4, 1025, 2), key=lambda w: abs(conv_macs(plain_encoder(w, latent_dim), meta_probe) - target_macs))
+        best = min(range(4, 1025, 2),
+                   key=lambda w: abs(conv_macs(plain_encoder(w, latent_dim), meta_probe) - target_macs))
     return plain_encoder(best, latent_dim), best
 
 
@@ -95,7 +96,8 @@ def main() -> None:
         params = sum(p.numel() for p in model.parameters())
         g = conv_macs(model, probe) / 1e9
         print(f"  {name:14s} {params / 1e6:6.2f}M params  {g:6.2f} GMAC/frame  {best[name]:7.2f} frames/s")
-    print(f"  plain width {plain_width}; paper-shaped / plain throughput = {best['paper-shaped'] / best['plain strided']:.2f}")
+    print(f"  plain width {plain_width}; "
+          f"paper-shaped / plain throughput = {best['paper-shaped'] / best['plain strided']:.2f}")
 
 
 if __name__ == "__main__":

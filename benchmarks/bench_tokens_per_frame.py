@@ -59,9 +59,11 @@ def tokenizer_candidates() -> dict[str, tuple[Callable[[], object], int, dict]]:
     values = latent[3] * latent[4] * latent[5] * latent[2] / clip.shape[2]
     return {
         "GAIA-1 tokenizer (encode + decode)": (torch.no_grad()(lambda: g1.decode(g1.encode(frames))), FRAMES,
-                                               {"per_frame": f"{ids} ids", "bits_per_frame": ids * math.log2(g1.codebook_size)}),
+                                               {"per_frame": f"{ids} ids",
+                                                "bits_per_frame": ids * math.log2(g1.codebook_size)}),
         "GAIA-2 video tokenizer (encode + decode)": (torch.no_grad()(lambda: g2.decode(g2.encode(clip).mode())), 8,
-                                                     {"per_frame": f"{values:g} latent values", "bits_per_frame": 16 * values}),
+                                                     {"per_frame": f"{values:g} latent values",
+                                                      "bits_per_frame": 16 * values}),
     }
 
 

@@ -52,13 +52,16 @@ def main() -> None:
     cond = net.conditioner(b, steps, force_drop={"text": True, "actions": True})
     greedy = TokenPicker("argmax")
     t_cached, cached = timed(lambda: AutoregressiveSampler(greedy)(net, context, cond, frames=1), args.repeats)
-    t_full, full = timed(lambda: AutoregressiveSampler(greedy, use_cache=False)(net, context, cond, frames=1), args.repeats)
+    t_full, full = timed(lambda: AutoregressiveSampler(greedy, use_cache=False)(net, context, cond, frames=1),
+                         args.repeats)
     guide = ClassifierFreeGuidance(3.0, LinearSchedule())
-    t_guided, _ = timed(lambda: AutoregressiveSampler(greedy)(net, context, cond, cond, frames=1, guidance=guide), args.repeats)
+    t_guided, _ = timed(lambda: AutoregressiveSampler(greedy)(net, context, cond, cond, frames=1, guidance=guide),
+                        args.repeats)
     print(f"threads={torch.get_num_threads()} n={args.tokens} context={args.context} batch={b} "
           f"window={steps * net.step_len} positions")
     print(f"cached  {t_cached:.3f} s/frame")
-    print(f"full    {t_full:.3f} s/frame   full/cached = {t_full / t_cached:.1f}×  identical tokens: {torch.equal(cached, full)}")
+    print(f"full    {t_full:.3f} s/frame   full/cached = {t_full / t_cached:.1f}×  "
+          f"identical tokens: {torch.equal(cached, full)}")
     print(f"guided  {t_guided:.3f} s/frame   guided/cached = {t_guided / t_cached:.2f}×")
 
 

@@ -143,12 +143,12 @@ def main() -> None:
         overrides["depth"] = args.depth
     wm: WorldModel = instantiate(cfg, **overrides)().train()
     net_cfg = OmegaConf.merge(cfg, overrides)
-    b, t, n, m, l = args.batch, args.frames, args.tokens, args.text_tokens, wm.l
+    b, t, n, m, n_act = args.batch, args.frames, args.tokens, args.text_tokens, wm.l  # n_act: the paper's l
     seq_len = t * wm.step_len
 
     # --- A: world model, full conditioning path in training mode
     tokens = torch.randint(0, args.vocab, (b, t, n))
-    actions = torch.randn(b, t, l)
+    actions = torch.randn(b, t, n_act)
     wm_params = list(wm.parameters())
     if args.text == "encoder":
         text_encoder = instantiate(OmegaConf.load(TEXT_ENCODER), dim=net_cfg.text_dim, tokens=m)().train()
@@ -219,7 +219,7 @@ def main() -> None:
     results = {
         "config": {"dim": net_cfg.dim, "depth": net_cfg.depth, "heads": net_cfg.heads, "kv_heads": net_cfg.kv_heads,
                    "mlp_ratio": net_cfg.mlp_ratio, "vocab": args.vocab, "frames": t, "text_tokens": m,
-                   "image_tokens": n, "action_tokens": l, "batch": b, "text": args.text, "dtype": "float32",
+                   "image_tokens": n, "action_tokens": n_act, "batch": b, "text": args.text, "dtype": "float32",
                    "tie_embeddings": trunk["tie_embeddings"],
                    "threads": torch.get_num_threads(), "warmup": args.warmup, "rounds": rounds},
         "positions": positions,
@@ -238,7 +238,7 @@ def main() -> None:
         return
     c = results["config"]
     print(f"dim={c['dim']} depth={c['depth']} heads={c['heads']} kv_heads={c['kv_heads']} mlp={c['mlp_ratio']} "
-          f"V={c['vocab']} T={t} m={m} n={n} l={l} batch={b} text={args.text} float32 tied={c['tie_embeddings']} "
+          f"V={c['vocab']} T={t} m={m} n={n} l={n_act} batch={b} text={args.text} float32 tied={c['tie_embeddings']} "
           f"threads={c['threads']} "
           f"warmup={args.warmup} rounds={rounds} (interleaved, alternating order)")
     print(f"{'candidate':16s} {'positions':>9s} {'trunk params':>12s} {'total params':>12s} "

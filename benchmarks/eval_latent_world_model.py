@@ -78,14 +78,16 @@ def main() -> None:
                    for k in range(args.samples)]
         candidates = {"world model": samples[0],
                       **({mean_row: torch.stack(samples).mean(0)} if args.samples > 1 else {}),
-                      "repeat last context step": torch.cat([real[:, :, :c]] + [real[:, :, c - 1 : c]] * (args.steps - c), 2),
+                      "repeat last context step": torch.cat([real[:, :, :c]]
+                                                            + [real[:, :, c - 1 : c]] * (args.steps - c), 2),
                       "mean latent": torch.cat([real[:, :, :c], real[:, :, :c].mean(dim=(2, 4, 5), keepdim=True)
                                                 .expand(-1, -1, args.steps - c, -1, *real.shape[-2:])], 2)}
         for name, latents in candidates.items():
             future = slice(c, args.steps)
             mses[name].append(float((latents[:, :, future] - real[:, :, future]).pow(2).mean()))
             rows[name].append(decoded_psnr(tokenizer, latents[:, :, future] / scale, real[:, :, future] / scale))
-    print(f"{len(windows)} windows, {c} context + {args.steps - c} generated latent steps, {args.solver_steps} Euler steps")
+    print(f"{len(windows)} windows, {c} context + {args.steps - c} generated latent steps, "
+          f"{args.solver_steps} Euler steps")
     print("| prediction | latent MSE | decoded PSNR vs decoded real (dB) | PSNR − repeat (dB) |")
     print("|---|---:|---:|---:|")
     repeat = torch.tensor(rows["repeat last context step"])

@@ -18,8 +18,8 @@ and reports, per row, PSNR against the true frames and temporal flicker (mean |�
 frames, gaia_app.eval.metrics.temporal_flicker; lower is steadier), each a mean over clips with a 95 % interval,
 and the paired difference to framewise with its interval. Then the temporal upsampling 6.25 → 12.5 → 25 Hz against
 the true 25 Hz frames, and the 25 Hz decoding path's frames/s at the tiny (trained) and a mid size (random weights,
-same cost; --rows-only skips these two). Writes results.json, results.md, steps.png (PSNR and flicker against steps), a PNG strip
-(true | framewise | decoder) and an .rrd into --out.
+same cost; --rows-only skips these two). Writes results.json, results.md, steps.png (PSNR and flicker against
+steps), a PNG strip (true | framewise | decoder) and an .rrd into --out.
 """
 
 from __future__ import annotations
@@ -86,8 +86,9 @@ def held_out_clips(run_cfg, clips: int, frames: int, seed: int | None = None) ->
     """(clips, 4·(frames − 1) + 1, 3, H, W) in [-1, 1]: synthetic clips at 25 Hz from the validation seed, or from
     `seed` (a world neither training nor any choice made on the validation clips has seen)."""
     src = run_cfg.data.val_source
-    ds = SyntheticClipDataset(num_clips=clips, seed=int(src.seed if seed is None else seed), height=int(src.height), width=int(src.width),
-                              cameras=list(src.cameras), clip_len=4 * (frames - 1) + 1, fps=25.0)
+    ds = SyntheticClipDataset(num_clips=clips, seed=int(src.seed if seed is None else seed), height=int(src.height),
+                              width=int(src.width), cameras=list(src.cameras), clip_len=4 * (frames - 1) + 1,
+                              fps=25.0)
     video = torch.stack([torch.from_numpy(ds[i].frames[0]) for i in range(clips)])  # (clips, t, 3, H, W) uint8
     return video.float() / 127.5 - 1
 
@@ -228,7 +229,9 @@ def sampler_for(name: str, schedule):
     kind, count = name.rstrip("0123456789"), name[len(name.rstrip("0123456789")):]
     if kind not in SAMPLERS or not count:
         raise ValueError(f"--samplers: unknown row {name!r}; expected ddim<k>, dpm<k>, mean<k>, amean<k> or zero")
-    return SAMPLERS[kind](schedule, draws=int(count)) if kind.endswith("mean") else SAMPLERS[kind](schedule, steps=int(count))
+    if kind.endswith("mean"):
+        return SAMPLERS[kind](schedule, draws=int(count))
+    return SAMPLERS[kind](schedule, steps=int(count))
 
 
 def upsampling_scores(module, tokens: torch.Tensor, full: torch.Tensor, sampler: str, seed: int) -> dict:
@@ -250,8 +253,8 @@ def upsampling_scores(module, tokens: torch.Tensor, full: torch.Tensor, sampler:
 def speed_section(module, one_clip: torch.Tensor, sampler: str, device: str) -> dict:
     """Denoiser steps/s and 25 Hz frames/s of the trained decoder and of a mid-size one (random weights, same cost)."""
     net, schedule = module.ema_decoder, module.schedule
-    mid = VideoDecoder(vocab_size=net.vocab_size, token_grid=net.token_grid, image_size=net.image_size, frames=module.frames,
-                       channels=64, channel_mults=(1, 2, 4), res_blocks=2, attention_levels=(2,),
+    mid = VideoDecoder(vocab_size=net.vocab_size, token_grid=net.token_grid, image_size=net.image_size,
+                       frames=module.frames, channels=64, channel_mults=(1, 2, 4), res_blocks=2, attention_levels=(2,),
                        render_tokens=net.render_tokens, residual=net.residual,
                        residual_scale=net.residual_scale).to(device).eval()
     return {
@@ -279,7 +282,8 @@ def main() -> None:
     parser.add_argument("--upsample-sampler", default="mean16", help="row name of the sampler of the 25 Hz path")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu", help="cpu or cuda (frames/s on a GPU)")
-    parser.add_argument("--world-seed", type=int, default=None, help="clips of this world instead of the validation one")
+    parser.add_argument("--world-seed", type=int, default=None,
+                        help="clips of this world instead of the validation one")
     parser.add_argument("--rows-only", action="store_true", help="skip the 25 Hz upsampling and the speed section")
     args = parser.parse_args()
     if args.weights and (args.world_seed is None or args.out is None):
@@ -300,8 +304,8 @@ def main() -> None:
     tokens = module.tokenize(truth.to(args.device))
     framewise = module.render_tokens(tokens).cpu()
     baseline = per_clip(framewise, truth)
-    results = {"clips": args.clips, "frames_6_25hz": args.frames, "world_seed": args.world_seed, "framewise_tokenizer": scores(framewise, truth),
-               "samplers": {}}
+    results = {"clips": args.clips, "frames_6_25hz": args.frames, "world_seed": args.world_seed,
+               "framewise_tokenizer": scores(framewise, truth), "samplers": {}}
     decoded = {}
     for name in args.samplers.split(","):
         pipe = VideoDecodingPipeline(net, schedule, sampler_for(name, schedule), module.frames, module.context_frames,

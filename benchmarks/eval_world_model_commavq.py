@@ -1,7 +1,8 @@
 """Validation cross-entropy of a trained GAIA-1 world model on commaVQ tokens vs two baselines (issue 5).
 
     python train.py experiment=gaia1/world_model_commavq
-    python benchmarks/eval_world_model_commavq.py --ckpt outputs/gaia1_world_model_commavq/<time>/checkpoints/best_step_*.ckpt
+    python benchmarks/eval_world_model_commavq.py \\
+        --ckpt outputs/gaia1_world_model_commavq/<time>/checkpoints/best_step_*.ckpt
 
 Uses the DataModule of the run's own config (same windows, same time split). Reports, in nats/token
 on validation frames 2..T of each window (frame 1 has no previous frame to copy):

@@ -116,8 +116,9 @@ def main() -> None:
         label = {"top_k": f"top_k k={args.k}", "top_p": f"top_p p={args.p}", "sample": "sample (full)"}.get(mode, mode)
         rows[label] = reading(scene, unprompted(folder, picker, args.rollouts, frames, args.seed, args.batch))
     reference = rows[real_row]
-    results = {"time_of_day_mix": args.time_of_day_mix, "rollouts": args.rollouts, "seed": args.seed, "world_seed": args.world_seed, "real_clips": args.real_clips,
-               "frames": frames, "minutes": round((time.time() - start) / 60, 1), "rows": rows,
+    results = {"time_of_day_mix": args.time_of_day_mix, "rollouts": args.rollouts, "seed": args.seed,
+               "world_seed": args.world_seed, "real_clips": args.real_clips, "frames": frames,
+               "minutes": round((time.time() - start) / 60, 1), "rows": rows,
                "tv": {name: {attr: total_variation(row[attr], reference[attr]) for attr in SCENE}
                       for name, row in rows.items()}}
     args.out.mkdir(parents=True, exist_ok=True)

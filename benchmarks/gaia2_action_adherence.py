@@ -8,11 +8,13 @@ guided). Everything after `--` is a Hydra override of generate.yaml.
     python benchmarks/gaia2_action_adherence.py --weights gaia2 my_weights --out outputs/adherence -- \
         model.evaluate.contexts=16 model.evaluate.probe_clips=256 model.evaluate.probe_steps=3000 \
         model.guidance.scale=4 'model.guidance.conditions=[action]'
-    python benchmarks/gaia2_action_adherence.py --weights gaia2 --scales 4 8 --tables actions fidelity --out outputs/scales -- \
+    python benchmarks/gaia2_action_adherence.py --weights gaia2 --scales 4 8 --tables actions fidelity \
+        --out outputs/scales -- \
         model.evaluate.noise_draws=2 'model.guidance.conditions=[action]' 'evaluate.metrics=[psnr,ssim,fvmd]'
 
-`--tables fidelity` gives (or `--tables actions fidelity` adds) the evaluation's fidelity table for each variant (its rollouts under the scenes' own actions
-against the real continuations: what a guidance scale costs in PSNR, SSIM and motion statistics, FVMD).
+`--tables fidelity` gives (or `--tables actions fidelity` adds) the evaluation's fidelity table for each variant
+(its rollouts under the scenes' own actions against the real continuations: what a guidance scale costs in PSNR,
+SSIM and motion statistics, FVMD).
 """
 
 from __future__ import annotations

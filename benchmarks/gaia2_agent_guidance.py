@@ -6,7 +6,8 @@ guides the tokens inside the boxes only; plain CFG also guides the rest of the s
 prediction, which is where the two can differ. Everything after `--` is a Hydra override of generate.yaml.
 
     python benchmarks/gaia2_agent_guidance.py --weights gaia2 --out outputs/agent_guidance -- \
-        model.evaluate.contexts=16 model.evaluate.probe_clips=96 model.evaluate.probe_steps=1500 model.evaluate.cfg_scale=3
+        model.evaluate.contexts=16 model.evaluate.probe_clips=96 model.evaluate.probe_steps=1500 \
+        model.evaluate.cfg_scale=3
 
 `--variants plain,full` runs only plain CFG and the full-second-pass selective rows (besides the unguided ones), and
 `--guided-only` leaves the unguided model rows out too, so a confirmatory comparison of two variants affords more
@@ -37,10 +38,12 @@ def agent_guidance(weights: str, overrides: list[str],
                    variants: Sequence[str] = tuple(gaia2_evaluate.GUIDED_VARIANTS), unguided: bool = True
                    ) -> dict[str, Any]:
     """The agent table (with its inside / outside split) of the weights folder `weights` on held-out scenes, with
-    the guided rows `variants` (plain CFG always) and, with `unguided`, the agent-conditioned and agents-dropped rows."""
+    the guided rows `variants` (plain CFG always) and, with `unguided`, the agent-conditioned and agents-dropped
+    rows."""
     GlobalHydra.instance().clear()  # a caller's Hydra (tests compose many configs) must not block this one
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("generate", ["model=gaia2", "data=synthetic_rig", "mode=evaluate", f"weights={weights}", *overrides])
+        cfg = compose("generate", ["model=gaia2", "data=synthetic_rig", "mode=evaluate", f"weights={weights}",
+                                   *overrides])
     if not cfg.model.evaluate.cfg_scale:
         raise ValueError("model.evaluate.cfg_scale=0: the guided rows this benchmark compares need a scale")
     pipeline = load_gaia2(cfg)
@@ -52,7 +55,8 @@ def agent_guidance(weights: str, overrides: list[str],
     table, _ = gaia2_evaluate.agent_table(cfg, pipeline, scenes, probe, torch.Generator().manual_seed(int(cfg.seed)),
                                           variants, unguided)
     return {"weights": weights, "overrides": overrides, "variants": list(variants), "probe_fit": fit,
-            "seconds": time.perf_counter() - started, "cameras": [c.name for c in scenes[0][1].cameras], "agents": table}
+            "seconds": time.perf_counter() - started, "cameras": [c.name for c in scenes[0][1].cameras],
+            "agents": table}
 
 
 def markdown(result: dict[str, Any]) -> str:
@@ -69,7 +73,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="guided rows, comma-separated, of " + ", ".join(gaia2_evaluate.GUIDED_VARIANTS)
                         + " (plain always runs; fewer rows fit more scenes in the same time)")
     parser.add_argument("--guided-only", action="store_true",
-                        help="leave out the unguided model rows (agent conditions, agents dropped): a third less time a scene")
+                        help="leave out the unguided model rows (agent conditions, agents dropped): "
+                             "a third less time a scene")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of generate.yaml (after --)")
     args = parser.parse_args(argv)
     result = agent_guidance(args.weights, args.overrides, [v for v in args.variants.split(",") if v],

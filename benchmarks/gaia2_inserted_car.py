@@ -1,4 +1,5 @@
-r"""GAIA-2: is a car inserted with `model.add_agents` drawn as a car, and does a braking one close in? (road-users issue)
+r"""GAIA-2: is a car inserted with `model.add_agents` drawn as a car, and does a braking one close in?
+(road-users issue)
 
     python benchmarks/gaia2_inserted_car.py [--weights gaia2] [--contexts 16] [--json OUT] [-- generate.yaml overrides]
 
@@ -31,10 +32,18 @@ from tqdm import tqdm
 from gaia_app.data.agent_regions import box_mask
 from gaia_app.data.clip import AgentBoxes
 from gaia_app.data.synthetic import SyntheticClipDataset
-from gaia_app.eval.agent_fidelity import box_mask as pixel_box, fidelity_frames
+from gaia_app.eval.agent_fidelity import box_mask as pixel_box
+from gaia_app.eval.agent_fidelity import fidelity_frames
 from gaia_app.eval.agent_iou import load_agent_probe, predicted_agents
 from gaia_app.eval.intervals import mean_interval, ratio_interval, share_interval
-from gaia_app.tasks.gaia2_generate import commanded, latent_steps, load_gaia2, sample_latents, source_clip, with_added_agents
+from gaia_app.tasks.gaia2_generate import (
+    commanded,
+    latent_steps,
+    load_gaia2,
+    sample_latents,
+    source_clip,
+    with_added_agents,
+)
 from gaia_app.utils.run_dir import atomic_write_text
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -73,7 +82,8 @@ def car_boxes(clip: Any, track_id: int, first: int, height: int, width: int) -> 
     out = []
     for boxes in clip.agents[first:]:
         keep = boxes.track_id == track_id
-        one = AgentBoxes(boxes.centre[keep], boxes.size[keep], boxes.yaw[keep], boxes.category[keep], boxes.track_id[keep])
+        one = AgentBoxes(boxes.centre[keep], boxes.size[keep], boxes.yaw[keep], boxes.category[keep],
+                         boxes.track_id[keep])
         out.append(box_mask(one, clip.cameras[0], height, width))
     return np.stack(out)
 
@@ -124,7 +134,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             if name == "brake":
                 rows["box_growth_brake"].append(float(area[-1] / max(area[0], 1)))
     growth = np.array(rows["growth_brake"]) > np.array(rows["growth_hold"])
-    result = {"weights": args.weights, "contexts": args.contexts, "world_seed": args.world_seed, "distance": args.distance,
+    result = {"weights": args.weights, "contexts": args.contexts, "world_seed": args.world_seed,
+              "distance": args.distance,
               "closing": args.closing, "read_share": READ_SHARE,
               "read_as_car": ratio_interval(rows["read"], rows["frames"]).as_dict(),
               "real_lead_read": real_lead_reading(probe, args.real_clips),
@@ -148,7 +159,8 @@ def markdown(r: dict[str, Any]) -> str:
         f"GAIA-2 inserted car ({r['contexts']} scenes of world {r['world_seed']}, {r['distance']:g} m ahead; "
         f"{r['seconds']:.0f} s)", "",
         "| | value |", "|---|---|",
-        f"| generated frames where the probe reads the inserted car (≥ {r['read_share']:.0%} of its box; target ≥ 70 %) "
+        f"| generated frames where the probe reads the inserted car "
+        f"(≥ {r['read_share']:.0%} of its box; target ≥ 70 %) "
         f"| {est(r['read_as_car'])} |",
         f"| real lead vehicles within 30 m read the same way (the probe's ceiling) | {est(r['real_lead_read'])} |",
         f"| probed car pixels, last ÷ first generated frame: hold | {est(r['growth_hold'])} |",

@@ -60,7 +60,8 @@ def probe_quality(overrides: list[str]) -> dict[str, dict[str, float]]:
               "tokenized": torch.stack([gaia2_actions.views_of(tokenized(pipeline, rig), views) for rig in rigs]),
               "reference": torch.cat([contexts.frames] * len(commands))}
     stride = gaia2_actions.probe_stride(cfg)
-    rows = {name: error_row(probe, video, commanded, first + stride, len(commands), stride) for name, video in videos.items()}
+    rows = {name: error_row(probe, video, commanded, first + stride, len(commands), stride)
+            for name, video in videos.items()}
     out = {m: {name: rows[name][m]["mean"] for name in videos} for m in CONTRASTS}
     for values in out.values():
         values["ratio"] = values["ceiling"] / values["reference"]

@@ -87,7 +87,8 @@ def main() -> None:
     dynamics, scene, fit = train_probes(data, args.probe_steps, seed=args.seed)
     trained = time.perf_counter()
     info = {"image_size": [args.height, args.width], "rate": args.rate, "frames": frames, "probe_seed": args.probe_seed,
-            "probe_clips": args.probe_clips, "probe_steps": args.probe_steps, "driven_share": args.driven_share, "fit": fit}
+            "probe_clips": args.probe_clips, "probe_steps": args.probe_steps, "driven_share": args.driven_share,
+            "fit": fit}
     save_probes(args.out / "probes", dynamics, scene, info)
     results = {"probes": info, "actions": action_rows(args, dynamics), "scene": scene_rows(args, scene),
                "seconds": {"render_training_clips": rendered - start, "train": trained - rendered,

@@ -35,8 +35,10 @@ CAMERAS = ["front", "front_left", "front_right"]
 
 def held_out_clips(n: int, seed: int, height: int, width: int, frames: int, fps: float) -> torch.Tensor:
     """(n, v, T, 3, H, W) float in [-1, 1] from the synthetic world."""
-    source = SyntheticClipDataset(num_clips=n, seed=seed, height=height, width=width, cameras=CAMERAS, clip_len=frames, fps=fps)
-    return torch.stack([to_float(torch.from_numpy(source[i].frames)) for i in tqdm(range(n), desc="render held-out clips")])
+    source = SyntheticClipDataset(num_clips=n, seed=seed, height=height, width=width, cameras=CAMERAS, clip_len=frames,
+                                  fps=fps)
+    return torch.stack([to_float(torch.from_numpy(source[i].frames))
+                        for i in tqdm(range(n), desc="render held-out clips")])
 
 
 def distortion(recon: torch.Tensor, video: torch.Tensor) -> tuple[float, float]:
@@ -66,7 +68,8 @@ def gaia2_rows(tokenizer: VideoTokenizer, clips: torch.Tensor, label: str) -> li
         latents = means.bfloat16().float() if bits == 16 else quantise(means, bits, low, high)
         recon = torch.cat([tokenizer.decode(z[None]) for z in latents])
         p, s = distortion(recon, clips)
-        rows.append((f"{label}, {bits}-bit{' (bf16)' if bits == 16 else ''}", tokenizer.storage_bits_per_pixel(bits), p, s))
+        rows.append((f"{label}, {bits}-bit{' (bf16)' if bits == 16 else ''}", tokenizer.storage_bits_per_pixel(bits),
+                     p, s))
     kl = float(np.mean([kl_bits_per_pixel(q, frames, height, width) for q in posteriors]))
     # the bits-back rate codes the means themselves: their distortion is the bf16 row's (bf16 rounding is below 0.01 dB)
     rows.append((f"{label}, KL rate (bits-back)", kl, rows[0][2], rows[0][3]))
@@ -113,7 +116,8 @@ def main() -> None:
         rows += gaia2_rows(load_module(ckpt).tokenizer, clips, f"GAIA-2 latents ({Path(ckpt).parent.parent.name})")
     if args.gaia1_ckpt:
         rows += gaia1_rows(load_module(args.gaia1_ckpt).tokenizer, clips)
-    header = (f"{args.clips} held-out synthetic clips (seed {args.seed}) × {len(CAMERAS)} cameras × {args.frames} frames "
+    header = (f"{args.clips} held-out synthetic clips (seed {args.seed}) × {len(CAMERAS)} cameras × "
+              f"{args.frames} frames "
               f"at {args.height}×{args.width}, {args.fps:g} Hz")
     text = table(rows, header)
     print(text)

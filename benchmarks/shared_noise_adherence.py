@@ -130,7 +130,8 @@ def markdown(result: dict[str, Any]) -> str:
         digits = 2 if name.startswith("speed") else 4
         bounds = " | ".join(f"{entry[key]:.{digits}f}" for key in ("ceiling", "floor", "target"))
         d = entry.get("shared_minus_independent")
-        paired = f"{d['mean']:+.{digits}f} [{d['low']:+.{digits}f}, {d['high']:+.{digits}f}]" if d else "— (one coupling)"
+        paired = (f"{d['mean']:+.{digits}f} [{d['low']:+.{digits}f}, {d['high']:+.{digits}f}]" if d
+                  else "— (one coupling)")
         lines.append(f"| {name} | {bounds} | {paired} |")
     return "\n".join(lines) + "\n"
 

@@ -47,7 +47,8 @@ def conds(net: WorldModel, b: int, steps: int, seed: int = 0):
     g = torch.Generator().manual_seed(seed)
     text, actions = torch.randn(b, steps, M, E, generator=g), torch.randn(b, steps, 2, generator=g)
     keep = {"text": False, "actions": False}
-    return net.conditioner(b, steps, text, actions, keep), net.conditioner(b, steps, text, actions, {"text": True, "actions": False})
+    return (net.conditioner(b, steps, text, actions, keep),
+            net.conditioner(b, steps, text, actions, {"text": True, "actions": False}))
 
 
 @pytest.mark.parametrize("guided", [False, True])
@@ -83,7 +84,8 @@ def test_sliding_window_generates_three_times_the_context(net: WorldModel) -> No
     frames = 3 * T
     cond, _ = conds(net, 2, 1 + frames)
     context = torch.randint(0, V, (2, 1, N))
-    out = AutoregressiveSampler(TokenPicker("top_k", k=4))(net, context, cond, frames=frames, generator=torch.Generator().manual_seed(0))
+    out = AutoregressiveSampler(TokenPicker("top_k", k=4))(net, context, cond, frames=frames,
+                                                           generator=torch.Generator().manual_seed(0))
     assert out.shape == (2, 1 + frames, N) and out.min() >= 0 and out.max() < V
 
 
@@ -103,7 +105,8 @@ def test_pipeline_futures_guidance_and_negative_prompt(net: WorldModel) -> None:
     out = pipe(context, frames=2, text=text, num_futures=3, generator=torch.Generator().manual_seed(0))
     assert out.tokens.shape == (6, 3, N) and out.context_frames == 1
     assert torch.equal(out.tokens[:3, 0], context[:1].expand(3, -1, -1)[:, 0])
-    negative_out = pipe(context, frames=2, text=text, negative_text=negative, generator=torch.Generator().manual_seed(0))
+    negative_out = pipe(context, frames=2, text=text, negative_text=negative,
+                        generator=torch.Generator().manual_seed(0))
     unconditional = WorldModelRolloutPipeline(net, AutoregressiveSampler(TokenPicker("argmax")))(context, frames=2)
     assert negative_out.tokens.shape == unconditional.tokens.shape == (2, 3, N)
 

@@ -14,7 +14,8 @@ from tests.conftest import CLIP_PROJECTION, CONF_DIR, compose_config
 
 GROUPS = ["data", "model", "model/net", "model/optim", "model/sched", "trainer", "debug", "logger", "callbacks",
           "paths", "extras", "hydra"]
-EXPERIMENTS = sorted(str(p.relative_to(CONF_DIR / "experiment").with_suffix("")) for p in (CONF_DIR / "experiment").rglob("*.yaml"))
+EXPERIMENTS = sorted(str(p.relative_to(CONF_DIR / "experiment").with_suffix(""))
+                     for p in (CONF_DIR / "experiment").rglob("*.yaml"))
 
 
 def shrink(experiment: str, clip_dir: Path | None = None) -> list[str]:
@@ -29,7 +30,8 @@ def shrink(experiment: str, clip_dir: Path | None = None) -> list[str]:
     family = "world_model" if experiment.endswith("scaling") else family  # a sweep over world-model sizes
     net = f"gaia1_{family}_tiny"
     # the paper's T5-large is a local directory a user provides (the trainable keyword encoder stands in)
-    text = ["model/text_encoder=learned", "~model.text_encoder.path"] if experiment.endswith("world_model_paper") else []
+    text = (["model/text_encoder=learned", "~model.text_encoder.path"] if experiment.endswith("world_model_paper")
+            else [])
     return [f"model/net={net}", "trainer=tiny", *text]
 
 

@@ -29,7 +29,8 @@ def test_a_view_warped_from_its_neighbour_has_no_seam_error() -> None:
     clip = generate_clip(seed=0, height=64, width=112, cameras=2, clip_len=1, fps=12.5)
     intrinsics, extrinsics = rig(clip)
     a = F.interpolate(torch.rand(1, 3, 8, 14) * 2 - 1, size=(64, 112), mode="bilinear", align_corners=False)
-    grid, inside = overlap_grid(infinity_homography(intrinsics[0], extrinsics[0], intrinsics[1], extrinsics[1]), 64, 112)
+    grid, inside = overlap_grid(infinity_homography(intrinsics[0], extrinsics[0], intrinsics[1], extrinsics[1]),
+                                64, 112)
     b = F.grid_sample(a, grid[None], mode="bilinear", align_corners=False)
     b = torch.where(inside, b, torch.rand_like(b))  # what b sees outside the overlap does not count
     video = torch.stack([a, b])  # (v, T=1, 3, H, W)

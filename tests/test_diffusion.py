@@ -9,10 +9,14 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from gaia_app.diffusion.noise_schedule import (CosineNoiseSchedule, eps_from_v, expand, v_from_x0, v_target,
-                                               x0_from_v)
-from gaia_app.diffusion.samplers import (DDIMSampler, DPMSolverSampler, ImageVideoBlend, OneStepMeanSampler,
-                                         trailing_timesteps)
+from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule, eps_from_v, expand, v_from_x0, v_target, x0_from_v
+from gaia_app.diffusion.samplers import (
+    DDIMSampler,
+    DPMSolverSampler,
+    ImageVideoBlend,
+    OneStepMeanSampler,
+    trailing_timesteps,
+)
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 SCHEDULE = CosineNoiseSchedule()

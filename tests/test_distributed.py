@@ -42,7 +42,8 @@ def world_model_args(cache: Path, log_dir: Path) -> list[str]:
             "trainer.val_check_interval=3", "trainer.limit_val_batches=1", "+trainer.num_sanity_val_steps=0",
             f"data.path={cache}", "data.frame_stride=1", "data.batch_size=2", "model.net.vocab_size=16",
             "model.net.image_tokens=12", "model.net.dim=32", "model.net.depth=2", "model.net.heads=2",
-            "model.net.kv_heads=1", "extras.print_config=false", f"paths.log_dir={log_dir}", "callbacks.rerun_media=null"]
+            "model.net.kv_heads=1", "extras.print_config=false", f"paths.log_dir={log_dir}",
+            "callbacks.rerun_media=null"]
 
 
 def run_train(args: list[str], **env: str) -> subprocess.CompletedProcess:
@@ -80,7 +81,8 @@ def test_ddp_two_cpu_processes_share_one_run_dir(token_cache: Path, tmp_path: Pa
 
 
 def test_fsdp2_shards_on_two_cpu_processes_and_loads_on_one(token_cache: Path, tmp_path: Path) -> None:
-    done = run_train([*world_model_args(token_cache, tmp_path), "trainer=fsdp2", "trainer.strategy.activation_checkpointing=true"])
+    done = run_train([*world_model_args(token_cache, tmp_path), "trainer=fsdp2",
+                      "trainer.strategy.activation_checkpointing=true"])
     assert "MEMBER: 2/2" in done.stdout + done.stderr
     ckpt = only_run_dir(tmp_path) / "checkpoints" / "last.ckpt"
     shards = sorted(ckpt.glob("*.distcp"))
@@ -89,7 +91,8 @@ def test_fsdp2_shards_on_two_cpu_processes_and_loads_on_one(token_cache: Path, t
     assert min(sizes) > 0.3 * max(sizes), f"shards should split the weights: {sizes}"
     module = load_module(ckpt)  # one CPU process, no process group
     # every parameter got gradients, the root unit's included, except the text path: this cache has no captions
-    assert stale_parameters(ckpt, module, tmp_path) == ["net.conditioner.text_proj.weight", "net.conditioner.text_proj.bias",
+    assert stale_parameters(ckpt, module, tmp_path) == ["net.conditioner.text_proj.weight",
+                                                        "net.conditioner.text_proj.bias",
                                                         "text_encoder.embedding.weight"]
     trained = dict(module.net.named_parameters())
     fresh = dict(instantiate(compose_config("train", world_model_args(Path("x"), tmp_path), tmp_path).model)
@@ -138,15 +141,19 @@ def test_fsdp_clips_gradients_by_their_global_norm(tmp_path: Path) -> None:
 
     from gaia_app.lit.base import GaiaModule
 
-    module = GaiaModule(net=lambda: nn.Sequential(nn.Linear(4, 8), nn.Linear(8, 1)), optim=partial(torch.optim.SGD, lr=0.1))
+    module = GaiaModule(net=lambda: nn.Sequential(nn.Linear(4, 8), nn.Linear(8, 1)),
+                        optim=partial(torch.optim.SGD, lr=0.1))
     module.configure_model()
     dist.init_process_group("gloo", init_method=f"file://{tmp_path / 'rendezvous'}", rank=0, world_size=1)
     try:
         wrapped = FullyShardedDataParallel(module, device_id=torch.device("cpu"))
-        module._trainer = SimpleNamespace(model=wrapped, precision_plugin=FSDPPrecision("32-true"), gradient_clip_val=0.5,
-                                          gradient_clip_algorithm=None)
+        module._trainer = SimpleNamespace(model=wrapped, precision_plugin=FSDPPrecision("32-true"),
+                                          gradient_clip_val=0.5, gradient_clip_algorithm=None)
         wrapped.net(torch.randn(16, 4)).square().sum().mul(1e3).backward()
-        norm = lambda: torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in wrapped.parameters()]))
+
+        def norm() -> torch.Tensor:
+            return torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in wrapped.parameters()]))
+
         assert norm() > 10
         module.configure_gradient_clipping(torch.optim.SGD(wrapped.parameters(), lr=0.1), gradient_clip_val=0.5)
         assert norm() == pytest.approx(0.5, rel=1e-4)
@@ -239,7 +246,8 @@ def test_every_model_names_its_blocks_and_can_checkpoint_them(net: str, tmp_path
 
 def test_tokenizer_checkpointing_gives_the_same_gradients() -> None:
     torch.manual_seed(0)
-    plain = ImageTokenizer(channels=8, channel_mults=(1, 2), blocks_per_stage=1, latent_dim=8, codebook_size=16, code_dim=4)
+    plain = ImageTokenizer(channels=8, channel_mults=(1, 2), blocks_per_stage=1, latent_dim=8, codebook_size=16,
+                           code_dim=4)
     recomputed = ImageTokenizer(channels=8, channel_mults=(1, 2), blocks_per_stage=1, latent_dim=8, codebook_size=16,
                                 code_dim=4, checkpointing=True)
     recomputed.load_state_dict(plain.state_dict())

@@ -1,5 +1,6 @@
 """generate.py mode=encode: a trained GAIA-2 video tokenizer writes a resumable, atomic latent cache of
-multi-camera clips with every condition beside the latents (GAIA-2 report, tokenizer: the world model trains on latents)."""
+multi-camera clips with every condition beside the latents (GAIA-2 report, tokenizer: the world model trains on
+latents)."""
 
 from __future__ import annotations
 
@@ -163,7 +164,8 @@ def test_encode_needs_a_gaia2_tokenizer_checkpoint(tmp_path: Path) -> None:
     tok_dir = tmp_path / "g1tok"
     train(compose_config("train", ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "data=synthetic_frames_tiny",
                                    "extras.print_config=false", "trainer.max_steps=1", "logger=csv"], tok_dir))
-    with pytest.raises(TypeError, match="mode=encode: ckpt=.* holds a ImageTokenizerModule checkpoint, expected a VideoTokenizerModule"):
+    with pytest.raises(TypeError, match="mode=encode: ckpt=.* holds a ImageTokenizerModule checkpoint, "
+                                        "expected a VideoTokenizerModule"):
         run_encode(tok_dir / "checkpoints" / "last.ckpt", tmp_path / "g", tmp_path / "latents")
 
 

@@ -37,7 +37,8 @@ def test_every_row_has_an_interval_and_its_difference_to_repeat(bench, checkpoin
                                       "--solver-steps", "2", "--samples", "3"])
     bench.main()
     out = capsys.readouterr().out
-    rows = dict(re.findall(r"^\| (world model[^|]*|repeat last context step|mean latent) \| (.*) \|$", out, re.MULTILINE))
+    rows = dict(re.findall(r"^\| (world model[^|]*|repeat last context step|mean latent) \| (.*) \|$", out,
+                           re.MULTILINE))
     assert set(rows) == {"world model", "world model, mean of 3 samples", "repeat last context step", "mean latent"}
     assert all(re.fullmatch(r"[\d.]+ \| [\d.]+ ± [\d.]+ \| -?[\d.]+ ± [\d.]+", v) for v in rows.values())
     assert rows["repeat last context step"].endswith("| 0.00 ± 0.00")
@@ -98,8 +99,9 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
     other = shutil.copytree(shipped_folder("gaia2"), tmp_path / "other")
     weights = load_file(other / "latent_world_model.safetensors")
     save_file({name: tensor * 0.9 for name, tensor in weights.items()}, other / "latent_world_model.safetensors")
-    result = module.main(["--weights", "gaia2", str(copy), str(other), "--scales", "0", "4", "--tables", "actions", "fidelity",
-                          "--out", str(tmp_path / "out"), "evaluate.metrics=[psnr,fvmd]", "model.evaluate.contexts=1", "model.evaluate.noise_draws=2",
+    result = module.main(["--weights", "gaia2", str(copy), str(other), "--scales", "0", "4", "--tables", "actions",
+                          "fidelity", "--out", str(tmp_path / "out"), "evaluate.metrics=[psnr,fvmd]",
+                          "model.evaluate.contexts=1", "model.evaluate.noise_draws=2",
                           "model.evaluate.probe_clips=2", "model.evaluate.probe_steps=2", "model.sampler.steps=2",
                           "model.guidance.conditions=[action]"])
     tables = result["tables"]
@@ -118,7 +120,8 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
     assert table.count("| model, commanded actions |") == 6 and f"### weights={copy}, guidance ×4" in table
     fidelity = result["fidelity"]
     assert fidelity[f"{copy}, guidance ×0"] == fidelity["gaia2, guidance ×0"]  # the same scenes and noise
-    assert fidelity["gaia2, guidance ×4"]["rows"]["model (rollouts)"] != fidelity["gaia2, guidance ×0"]["rows"]["model (rollouts)"]
+    assert (fidelity["gaia2, guidance ×4"]["rows"]["model (rollouts)"]
+            != fidelity["gaia2, guidance ×0"]["rows"]["model (rollouts)"])
     assert table.count("| gaia2, guidance ×") == 2 and "| held frame (floor) |" in table and "fvmd ↓" in table
     assert table.count("paired by scene") == 5 and "speed contrast +0.000 [" in table  # the copy's ×0 table: no change
     with pytest.raises(ValueError, match="probe_stride=5"):
@@ -129,9 +132,9 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
     with pytest.raises(ValueError, match="drop agent_iou"):
         module.main(["--weights", "gaia2", "--tables", "fidelity"])
     # guidance intervals: no solver step of a 2-step sampler lies in τ ∈ [0.9, 1], so ×4 there is the unguided model
-    spans = module.main(["--weights", "gaia2", "--scales", "0", "4", "--intervals", "0,1", "0.9,1", "--tables", "fidelity",
-                         "--", "evaluate.metrics=[psnr]", "model.evaluate.contexts=1", "model.sampler.steps=2",
-                         "model.guidance.conditions=[action]"])["fidelity"]
+    spans = module.main(["--weights", "gaia2", "--scales", "0", "4", "--intervals", "0,1", "0.9,1", "--tables",
+                         "fidelity", "--", "evaluate.metrics=[psnr]", "model.evaluate.contexts=1",
+                         "model.sampler.steps=2", "model.guidance.conditions=[action]"])["fidelity"]
     unguided = spans["gaia2, guidance ×0, τ ∈ [0, 1]"]
     assert spans["gaia2, guidance ×4, τ ∈ [0.9, 1]"] == unguided == spans["gaia2, guidance ×0, τ ∈ [0.9, 1]"]
     assert spans["gaia2, guidance ×4, τ ∈ [0, 1]"]["rows"]["model (rollouts)"] != unguided["rows"]["model (rollouts)"]
@@ -167,7 +170,8 @@ def test_agent_table_guided_variants_pick_rows_and_keep_plain_cfg_as_reference(t
     unguided model rows."""
     rows = gaia2_evaluate.guided_rows(16, ["full"])
     assert list(rows) == ["model, plain CFG ×16", "model, selective CFG ×16, full second pass"]
-    assert [(g.scale, g.spatial, g.spatial_pass) for g in rows.values()] == [(16, False, "agent_tokens"), (16, True, "full")]
+    assert [(g.scale, g.spatial, g.spatial_pass) for g in rows.values()] == [(16, False, "agent_tokens"),
+                                                                             (16, True, "full")]
     assert len(gaia2_evaluate.guided_rows(3)) == 4
     with pytest.raises(ValueError, match=r"\['dual'\]"):
         gaia2_evaluate.guided_rows(3, ["dual"])

@@ -6,8 +6,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gaia_app.diffusion.flow_matching import (FlowSampler, linear_quadratic_taus, noisy_sample, sample_tau,
-                                              velocity_target)
+from gaia_app.diffusion.flow_matching import (
+    FlowSampler,
+    linear_quadratic_taus,
+    noisy_sample,
+    sample_tau,
+    velocity_target,
+)
 
 
 def test_path_ends_and_target_is_its_derivative() -> None:
@@ -70,7 +75,8 @@ def test_partial_start_continues_from_a_noised_sample() -> None:
 
 
 MEANS = torch.tensor([[-2.0, 0.0], [2.0, 1.0], [0.0, -2.5]])
-COVS = torch.stack([torch.tensor([[0.3, 0.1], [0.1, 0.2]]), torch.tensor([[0.2, 0.0], [0.0, 0.5]]), 0.15 * torch.eye(2)])
+COVS = torch.stack([torch.tensor([[0.3, 0.1], [0.1, 0.2]]), torch.tensor([[0.2, 0.0], [0.0, 0.5]]),
+                    0.15 * torch.eye(2)])
 WEIGHTS = torch.tensor([0.5, 0.3, 0.2])
 
 

@@ -41,7 +41,8 @@ def checkpoints(tmp_path_factory) -> dict[str, Path]:
     train(compose_config("train", ["experiment=gaia2/world_model_tiny", "trainer=tiny", "trainer.max_steps=2",
                                    f"data.path={root / 'latents'}", "data.batch_size=2", "logger=csv",
                                    "extras.print_config=false"], root / "wm"))
-    return {"tokenizer": tokenizer, "world_model": root / "wm" / "checkpoints" / "last.ckpt", "latents": root / "latents"}
+    return {"tokenizer": tokenizer, "world_model": root / "wm" / "checkpoints" / "last.ckpt",
+            "latents": root / "latents"}
 
 
 def run(checkpoints: dict[str, Path], run_dir: Path, mode: str, *extra: str) -> dict:
@@ -63,7 +64,8 @@ def test_every_mode_runs_end_to_end(checkpoints, tmp_path: Path, mode: str) -> N
     results = run(checkpoints, tmp_path, mode, "model.chunks=2")
     steps = 6 if mode == "rollout" else 4  # rollout: 2 context + 2 chunks × 2 new steps
     assert results["latent_steps"] == steps and results["frames"] == 4 * steps and results["cameras"] == 3
-    assert sorted(results["files"]) == sorted(["sample_0.mp4", "grid.mp4", "rollout.rrd", "latents.npy", "conditioning.json"])
+    assert sorted(results["files"]) == sorted(["sample_0.mp4", "grid.mp4", "rollout.rrd", "latents.npy",
+                                               "conditioning.json"])
     assert {p.name for p in tmp_path.iterdir()} >= set(results["files"]) and not list(tmp_path.glob(".rollout-*"))
     latents = np.load(tmp_path / "latents.npy")
     assert latents.shape == (1, 3, steps, 16, 8, 14) and latents.dtype == np.float16 and np.isfinite(latents).all()
@@ -125,9 +127,11 @@ def test_bad_gaia2_settings_are_named(checkpoints, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="model=gaia2 mode=video"):
         run(checkpoints, tmp_path / "c", "video")
     with pytest.raises(ValueError, match="world_model_ckpt"):
-        generate(compose_config("generate", ["model=gaia2", "mode=scratch", *RIG, "tokenizer_ckpt=x.ckpt"], tmp_path / "d"))
+        generate(compose_config("generate", ["model=gaia2", "mode=scratch", *RIG, "tokenizer_ckpt=x.ckpt"],
+                                tmp_path / "d"))
     with pytest.raises(TypeError, match="world_model_ckpt=.*VideoTokenizerModule"):
-        generate(compose_config("generate", ["model=gaia2", "mode=scratch", *RIG, f"tokenizer_ckpt={checkpoints['tokenizer']}",
+        generate(compose_config("generate", ["model=gaia2", "mode=scratch", *RIG,
+                                             f"tokenizer_ckpt={checkpoints['tokenizer']}",
                                              f"world_model_ckpt={checkpoints['tokenizer']}"], tmp_path / "e"))
     with pytest.raises(ValueError, match="inpaint.cameras"):
         run(checkpoints, tmp_path / "f", "inpaint", "model.inpaint.region=box", "model.inpaint.cameras=[rear]")
@@ -197,13 +201,15 @@ def test_a_car_added_ahead_conditions_the_generated_steps_only(checkpoints, tmp_
 
 def test_bad_added_agents_are_named(checkpoints, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"model.add_agents\[0\].category='tank'"):
-        run(checkpoints, tmp_path / "a", "scratch", "model.add_agents=[{category: tank, centre: [1,0,0], size: [1,1,1]}]")
+        run(checkpoints, tmp_path / "a", "scratch",
+            "model.add_agents=[{category: tank, centre: [1,0,0], size: [1,1,1]}]")
     with pytest.raises(ValueError, match=r"model.add_agents\[0\]: unknown keys \['speed'\], missing keys \['size'\]"):
         run(checkpoints, tmp_path / "b", "scratch", "model.add_agents=[{category: car, centre: [1,0,0], speed: 3}]")
     with pytest.raises(ValueError, match=r"model.add_agents\[0\].centre=\[1, 0\]: expected 3 finite numbers"):
         run(checkpoints, tmp_path / "c", "scratch", "model.add_agents=[{category: car, centre: [1,0], size: [1,1,1]}]")
     with pytest.raises(ValueError, match=r"model.add_agents\[0\].size=.*must be positive"):
-        run(checkpoints, tmp_path / "d", "scratch", "model.add_agents=[{category: car, centre: [1,0,0], size: [1,0,1]}]")
+        run(checkpoints, tmp_path / "d", "scratch",
+            "model.add_agents=[{category: car, centre: [1,0,0], size: [1,0,1]}]")
 
 
 def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> None:
@@ -247,7 +253,8 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     assert "agent masks − plain CFG" in table
     assert "| probe check: ceiling ≤ ½ floor and ≤ ½ reference |" in table
     assert "| model, each camera generated alone (floor) |" in table
-    # 8 generated frames, the probe reads pairs 2 frames apart (model.evaluate.probe_stride): 6 pairs of generated frames
+    # 8 generated frames, the probe reads pairs 2 frames apart (model.evaluate.probe_stride): 6 pairs of generated
+    # frames
     assert results["actions"]["probe_stride"] == 2 and results["actions"]["scored_steps"] == 6
     assert results["actions"]["probe_cameras"] == "rig" and "Action adherence (every camera of the rig," in table
 
@@ -258,7 +265,8 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     (gaia1 / "evaluation.json").write_text(json.dumps({"contexts": 8, "context_frames": 2, "generated_frames": 7,
                                                        "rate": 6.25, "rows": {"model (video rollouts)": row}}))
     merged = combined_table({"GAIA-1": gaia1, "GAIA-2": tmp_path})
-    assert merged.count("| GAIA-2 · ") == 3 and "| GAIA-1 · model (video rollouts) | 20.000 | 0.500 | 3.000 | 0.200 |" in merged
+    assert merged.count("| GAIA-2 · ") == 3
+    assert "| GAIA-1 · model (video rollouts) | 20.000 | 0.500 | 3.000 | 0.200 |" in merged
     assert "lpips" not in merged  # only the metrics both runs computed
 
 
@@ -295,7 +303,8 @@ def test_export_keeps_the_tokenizer_of_a_weights_folder(checkpoints, tmp_path: P
     """A world model fine-tuned from shipped weights (model.init_from=gaia2) is exported beside their tokenizer:
     `weights=<folder>` copies its video tokenizer (also into the folder itself), and refuses tokenizer_ckpt too."""
     first = tmp_path / "first"
-    generate(compose_config("generate", ["model=gaia2", "mode=export", *RIG, f"tokenizer_ckpt={checkpoints['tokenizer']}",
+    generate(compose_config("generate", ["model=gaia2", "mode=export", *RIG,
+                                         f"tokenizer_ckpt={checkpoints['tokenizer']}",
                                          f"world_model_ckpt={checkpoints['world_model']}", f"out_dir={first}"],
                             tmp_path / "e1"))
     for out in (tmp_path / "second", first):
@@ -312,7 +321,8 @@ def test_export_keeps_the_tokenizer_of_a_weights_folder(checkpoints, tmp_path: P
                                              f"tokenizer_ckpt={checkpoints['tokenizer']}",
                                              f"world_model_ckpt={checkpoints['world_model']}",
                                              f"out_dir={tmp_path / 'x'}"], tmp_path / "both"))
-    with pytest.raises(ValueError, match=r"needs tokenizer_ckpt=<checkpoint of a GAIA-2 video tokenizer> \(or weights="):
+    with pytest.raises(ValueError,
+                       match=r"needs tokenizer_ckpt=<checkpoint of a GAIA-2 video tokenizer> \(or weights="):
         generate(compose_config("generate", ["model=gaia2", "mode=export", *RIG, f"out_dir={tmp_path / 'x'}",
                                              f"world_model_ckpt={checkpoints['world_model']}"], tmp_path / "none"))
     with pytest.raises(ValueError, match="model=gaia2 mode=export needs world_model_ckpt="):

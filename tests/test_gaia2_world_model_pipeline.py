@@ -37,8 +37,10 @@ def test_rollout_keeps_the_context_and_takes_new_controls_per_chunk() -> None:
     out = pipe.rollout(context, chunks, chunk_steps=2, generator=torch.Generator().manual_seed(0))
     assert out.shape == (1, 3, 5, 8, 8, 14)
     assert torch.equal(out[:, :, :1], context)
-    same_controls = pipe.rollout(context, [chunks[0], chunks[0]], chunk_steps=2, generator=torch.Generator().manual_seed(0))
-    assert torch.equal(out[:, :, :3], same_controls[:, :, :3]) and not torch.equal(out[:, :, 3:], same_controls[:, :, 3:])
+    same_controls = pipe.rollout(context, [chunks[0], chunks[0]], chunk_steps=2,
+                                 generator=torch.Generator().manual_seed(0))
+    assert torch.equal(out[:, :, :3], same_controls[:, :, :3])
+    assert not torch.equal(out[:, :, 3:], same_controls[:, :, 3:])
 
 
 def test_inpainting_keeps_everything_outside_the_mask() -> None:
@@ -92,7 +94,8 @@ def test_spatially_selective_guidance_touches_only_agent_tokens_and_costs_less()
     assert torch.equal(flat["paired"][:, outside], flat["none"][:, outside])
     assert counts["paired"] == counts["none"] + 2 * 3 * selected.numel()
     model, taus = pipeline(Guidance()).model, torch.full((1, 3), 0.5)
-    direction = (model(noise, taus, cond, positions=selected) - model(noise, taus, cond.without("agents"), positions=selected))
+    direction = (model(noise, taus, cond, positions=selected)
+                 - model(noise, taus, cond.without("agents"), positions=selected))
     expected = flat["none"][:, ~outside] + 3.0 * direction[0]  # (t, k, C) at patch 1; v_c + (s − 1)·direction
     torch.testing.assert_close(flat["paired"][:, ~outside], expected)
     assert not torch.allclose(flat["paired"][:, ~outside], flat["spatial"][:, ~outside])
@@ -113,7 +116,8 @@ def test_guidance_interval_guides_only_the_steps_whose_flow_time_lies_inside_it(
     torch.testing.assert_close(velocities["early"][:, :, 0], velocities["all"][:, :, 0])  # τ 0.2: guided
     assert torch.equal(velocities["early"][:, :, 1:], velocities["none"][:, :, 1:])  # τ 0.5 and 1: conditional only
     # no step inside: the second pass is skipped altogether
-    assert torch.equal(velocities["never"], velocities["none"]) and counts["never"] == counts["none"] == counts["all"] / 2
+    assert torch.equal(velocities["never"], velocities["none"])
+    assert counts["never"] == counts["none"] == counts["all"] / 2
     for bad in ([0.5, 0.5], [-0.1, 0.5], [0.2]):
         with pytest.raises(ValueError, match=r"guidance.interval=.*expected \[lo, hi\] with 0 ≤ lo < hi ≤ 1"):
             Guidance(scale=2.0, interval=bad)

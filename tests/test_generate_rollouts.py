@@ -45,13 +45,16 @@ def checkpoints(tmp_path_factory) -> dict[str, Path]:
                                    "data=synthetic_frames_tiny", *SIZE, *QUIET], root / "tokenizer"))
     tokenizer = root / "tokenizer" / "checkpoints" / "last.ckpt"
     generate(compose_config("generate", ["mode=tokenize", "data=synthetic_tiny", f"ckpt={tokenizer}",
-                                         f"out_dir={root / 'tokens'}", "extras.print_config=false", *SIZE], root / "tokenize"))
+                                         f"out_dir={root / 'tokens'}", "extras.print_config=false", *SIZE],
+                            root / "tokenize"))
     train(compose_config("train", ["experiment=gaia1/world_model_tiny", "trainer=tiny", "trainer.max_steps=2",
                                    "trainer.limit_val_batches=0", f"data.path={root / 'tokens' / 'train'}",
-                                   "data.frame_stride=1", "model.net.image_tokens=96", *WM_NET, *QUIET], root / "world_model"))
+                                   "data.frame_stride=1", "model.net.image_tokens=96", *WM_NET, *QUIET],
+                         root / "world_model"))
     train(compose_config("train", ["experiment=gaia1/video_decoder_tiny", "trainer=tiny", "trainer.max_steps=1",
                                    "trainer.limit_val_batches=0", f"model.tokenizer_ckpt={tokenizer}",
-                                   "data.source.num_clips=2", "data.val_source.num_clips=1", *SIZE, *DECODER_NET, *QUIET],
+                                   "data.source.num_clips=2", "data.val_source.num_clips=1", *SIZE, *DECODER_NET,
+                                   *QUIET],
                          root / "decoder"))
     return {"tokenizer_ckpt": tokenizer, "world_model_ckpt": root / "world_model" / "checkpoints" / "last.ckpt",
             "decoder_ckpt": root / "decoder" / "checkpoints" / "last.ckpt"}
@@ -114,7 +117,8 @@ def test_action_presets_and_explicit_values_reach_the_conditioning(checkpoints, 
     run(checkpoints, tmp_path / "brake", "mode=action", "speed=brake", "curvature=strong_right", decoder=False)
     brake = json.loads((tmp_path / "brake" / "conditioning.json").read_text())
     commanded = np.array(brake["commanded_actions"])
-    assert commanded.shape == (FUTURE, 2) and np.all(np.diff(commanded[:, 0]) <= 0) and np.allclose(commanded[:, 1], -0.05)
+    assert (commanded.shape == (FUTURE, 2) and np.all(np.diff(commanded[:, 0]) <= 0)
+            and np.allclose(commanded[:, 1], -0.05))
     assert len(brake["actions"]) == CONTEXT + FUTURE
     speeds = "[1,2,3,4,5,6,7]"
     run(checkpoints, tmp_path / "list", "mode=action", f"speed={speeds}", decoder=False)
@@ -166,16 +170,19 @@ def assert_no_outputs(run_dir: Path) -> None:
 
 def test_a_context_clip_shorter_than_needed_is_named(checkpoints, tmp_path: Path) -> None:
     # 8 frames at 25 Hz = 0.28 s: 2 frames at 6.25 Hz, one short of the 3 context frames asked for
-    export(tmp_path / "clips", SyntheticClipDataset(num_clips=1, seed=3, height=32, width=48, clip_len=8), progress=False)
-    with pytest.raises(ClipError, match=r"context clip 'synthetic-s3-000000' has 2 frames at 6.25 Hz .* needs 3 context"):
-        run(checkpoints, tmp_path / "run", "mode=video", "context.source=folder", f"context.folder={tmp_path / 'clips'}",
-            "context.frames=3", decoder=False)
+    export(tmp_path / "clips", SyntheticClipDataset(num_clips=1, seed=3, height=32, width=48, clip_len=8),
+           progress=False)
+    with pytest.raises(ClipError,
+                       match=r"context clip 'synthetic-s3-000000' has 2 frames at 6.25 Hz .* needs 3 context"):
+        run(checkpoints, tmp_path / "run", "mode=video", "context.source=folder",
+            f"context.folder={tmp_path / 'clips'}", "context.frames=3", decoder=False)
     assert_no_outputs(tmp_path / "run")
 
 
 def test_a_checkpoint_of_the_wrong_component_is_named(checkpoints, tmp_path: Path) -> None:
     wrong = {**checkpoints, "world_model_ckpt": checkpoints["decoder_ckpt"]}
-    with pytest.raises(TypeError, match="world_model_ckpt=.*holds a VideoDecoderModule checkpoint, expected a WorldModelModule"):
+    with pytest.raises(TypeError,
+                       match="world_model_ckpt=.*holds a VideoDecoderModule checkpoint, expected a WorldModelModule"):
         run(wrong, tmp_path, "mode=video")
 
 
@@ -189,7 +196,8 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
     assert set(rows) == {"ceiling", "tokenized", "model", "floor", "reference"}
     assert rows["tokenized"] != rows["ceiling"]  # the real frames went through the (lossy) tokenizer
     for row in rows.values():
-        assert row["speed_mae"]["n"] == 2 and row["speed_mae"]["low"] <= row["speed_mae"]["mean"] <= row["speed_mae"]["high"]
+        assert row["speed_mae"]["n"] == 2
+        assert row["speed_mae"]["low"] <= row["speed_mae"]["mean"] <= row["speed_mae"]["high"]
         assert np.isfinite(row["curvature_mae"]["mean"]) and np.shape(row["per_command"]) == (2, 2)
         assert row["speed_contrast"]["n"] == 2 and np.isfinite(row["curvature_contrast"]["mean"])
         # the signed diagnostic: |realised − commanded| averaged over contexts is the contrast error
@@ -241,8 +249,9 @@ def test_command_discrimination_scores_real_futures_teacher_forced(checkpoints, 
     cond = pipeline.rollouts.conditions(2, t, None, actions[0])
     flat = tokens[0].flatten(2)
     with torch.no_grad():
-        per_frame = torch.stack([token_log_perplexity(pipeline.world_model, flat[:, :i], flat[:, i], cond.steps(0, i + 1))
-                                 .mean(-1) for i in range(2, t)], dim=1)
+        per_frame = torch.stack([token_log_perplexity(pipeline.world_model, flat[:, :i], flat[:, i],
+                                                      cond.steps(0, i + 1)).mean(-1)
+                                 for i in range(2, t)], dim=1)
     torch.testing.assert_close(nats, per_frame.mean(dim=1), rtol=1e-4, atol=1e-4)
     same = command_discrimination(pipeline, tokens, actions, 2, [(0, 0), (1, 1)])
     assert same["speed_contrast"]["mean"] == 0 and same["curvature_contrast"]["mean"] == 0
@@ -279,8 +288,8 @@ def test_gallery_of_the_showcase_copies_its_strips(checkpoints, tmp_path: Path) 
 
 
 def test_evaluate_mode_scores_model_ceiling_and_floor(checkpoints, tmp_path: Path) -> None:
-    results = run(checkpoints, tmp_path, "mode=evaluate", "evaluate.contexts=3", "seconds=0.5", "evaluate.probe_clips=2",
-                  "evaluate.probe_steps=2")
+    results = run(checkpoints, tmp_path, "mode=evaluate", "evaluate.contexts=3", "seconds=0.5",
+                  "evaluate.probe_clips=2", "evaluate.probe_steps=2")
     assert set(results["rows"]) == {"model (video rollouts)", "tokens (real continuation, tokenized and rendered)",
                                     "held frame (last context frame repeated)"}
     for row in results["rows"].values():
@@ -313,7 +322,8 @@ def test_evaluate_scores_a_perfect_future_perfectly_and_a_frozen_one_worse() -> 
     frozen = torch.cat([real[:, :2], real[:, 1:2].expand(-1, 4, -1, -1, -1)], dim=1)
     perfect = score(["psnr", "ssim", "fvmd"], real, real, t0=2)
     worse = score(["psnr", "ssim", "fvmd"], real, frozen, t0=2)
-    assert perfect["ssim"] == pytest.approx(1.0) and perfect["fvmd"] == pytest.approx(0.0, abs=1e-9) and perfect["psnr"] > 90
+    assert (perfect["ssim"] == pytest.approx(1.0) and perfect["fvmd"] == pytest.approx(0.0, abs=1e-9)
+            and perfect["psnr"] > 90)
     assert worse["psnr"] < 30 and worse["ssim"] < 0.9 and worse["fvmd"] > 0.1
 
 

@@ -14,7 +14,8 @@ from tests.conftest import ROOT
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_gpu_world_model", ROOT / "benchmarks" / "bench_gpu_world_model.py")
+    spec = importlib.util.spec_from_file_location("bench_gpu_world_model",
+                                                  ROOT / "benchmarks" / "bench_gpu_world_model.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

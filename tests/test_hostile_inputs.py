@@ -163,8 +163,9 @@ def test_generate_never_writes_outside_its_folders(genuine: Path, clip_root: Pat
     root = escaping_copy(clip_root, tmp_path)
     before = {p for p in tmp_path.rglob("*")}
     out = tmp_path / "inside" / "out"
-    cfg = compose_config("generate", [f"mode={mode}", f"ckpt={genuine}", "data=video_folder", f"data.source.root={root}",
-                                      "data.height=64", "data.width=112", "data.clip_len=8", "data.fps=null", "data.num_workers=0",
+    cfg = compose_config("generate", [f"mode={mode}", f"ckpt={genuine}", "data=video_folder",
+                                      f"data.source.root={root}", "data.height=64", "data.width=112", "data.clip_len=8",
+                                      "data.fps=null", "data.num_workers=0",
                                       f"out_dir={out}", "extras.print_config=false"], out / "run")
     generate(cfg)  # the escaping clip is skipped at setup (with its reason), the other one is processed
     written = {p for p in tmp_path.rglob("*")} - before
@@ -230,7 +231,8 @@ def test_tokenize_refuses_a_cache_made_differently_unless_overwritten(genuine: P
     base = ["mode=tokenize", f"ckpt={genuine}", "data=synthetic_tiny", "splits=[train]", "max_clips=2",
             f"out_dir={out}", "extras.print_config=false"]
     generate(compose_config("generate", base, tmp_path / "g1"))
-    with pytest.raises(ClipError, match=r"holds a cache made differently \(fps: cache has None, this run makes 12\.5\)"):
+    with pytest.raises(ClipError,
+                       match=r"holds a cache made differently \(fps: cache has None, this run makes 12\.5\)"):
         generate(compose_config("generate", [*base, "fps=12.5"], tmp_path / "g2"))
     results = generate(compose_config("generate", [*base, "fps=12.5", "overwrite=true"], tmp_path / "g3"))["results"]
     assert results["train"]["written"] == 2 and results["train"]["skipped"] == 0
@@ -333,8 +335,8 @@ def test_clips_shorter_than_one_window_are_skipped_at_setup_with_a_count(clip_ro
     short = sorted(p for p in root.iterdir() if p.is_dir())[0]
     labels = (short / "labels.jsonl").read_text().splitlines()[:5]  # 5 of 16 frames labelled: 5 frames at 25 Hz
     (short / "labels.jsonl").write_text("\n".join(labels) + "\n")
-    from gaia_app.data.clip_writer import write_clip  # a consistent short clip: rewrite it from its first 5 frames
     from gaia_app.data.clip_folder import read_clip
+    from gaia_app.data.clip_writer import write_clip  # a consistent short clip: rewrite it from its first 5 frames
 
     clip = read_clip(sorted(p for p in clip_root.iterdir() if p.is_dir())[0], max_frames=5)
     write_clip(clip, root, overwrite=True)

@@ -37,7 +37,8 @@ def test_a_second_run_in_a_busy_run_folder_fails_before_writing_anything(tmp_pat
 def test_the_lock_is_dropped_with_its_process_and_shared_ranks_take_none(tmp_path: Path, monkeypatch) -> None:
     folder = tmp_path / "run"
     holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from gaia_app.utils.locks import FolderLock; "
-                               f"lock = FolderLock({str(folder)!r}, 'x').acquire(); print('held', flush=True); time.sleep(60)"],
+                               f"lock = FolderLock({str(folder)!r}, 'x').acquire(); "
+                               "print('held', flush=True); time.sleep(60)"],
                               stdout=subprocess.PIPE, text=True, cwd=ROOT)
     assert holder.stdout.readline().strip() == "held"
     with pytest.raises(FolderInUseError, match=f"pid {holder.pid}"):
@@ -94,7 +95,8 @@ def test_non_finite_checkpoint_weights_are_refused_naming_file_and_tensor(genuin
         checkpoint["state_dict"][weight] = torch.full_like(checkpoint["state_dict"][weight], float("inf"))
 
     path = tampered(genuine, tmp_path, poison)
-    with pytest.raises(UntrustedDataError, match=rf"ckpt={path}: state_dict under 'net\.': tensor '.*weight' holds NaN"):
+    with pytest.raises(UntrustedDataError,
+                       match=rf"ckpt={path}: state_dict under 'net\.': tensor '.*weight' holds NaN"):
         checkpoint_nets(path, "tokenizer", role="ckpt")
 
 

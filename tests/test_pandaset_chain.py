@@ -65,8 +65,9 @@ def test_pandaset_goes_through_the_whole_gaia2_path(sequence: Path, tmp_path: Pa
     latent = read_latent_clip(find_latent_clips(tmp_path / "latents" / "val")[0])
     assert [c.name for c in latent.cameras] == CAMERAS and latent.agents is not None and latent.actions is not None
     train(compose_config("train", ["experiment=gaia2/world_model_tiny", f"data.path={tmp_path / 'latents'}",
-                                   "data.batch_size=1", f"model.init_from={tmp_path / 'wm0' / 'checkpoints' / 'last.ckpt'}",
-                                   *TINY], tmp_path / "wm"))
+                                   "data.batch_size=1",
+                                   f"model.init_from={tmp_path / 'wm0' / 'checkpoints' / 'last.ckpt'}", *TINY],
+                         tmp_path / "wm"))
 
     # a six-camera rollout from the real context, its boxes projected into every camera in the recording
     results = generate(compose_config("generate", [

@@ -42,8 +42,8 @@ def test_video_decoder_paper_reads_the_paper_tokenizer() -> None:
 
 
 def test_gaia2_video_tokenizer_paper_preset() -> None:
-    """GAIA-2 report, tokenizer: encoder ≈ 85M and a larger decoder ≈ 200M; 448×960 → 14×30 per step, 8 frames per step, 64 channels,
-    3 latent steps (24 frames) decoded together."""
+    """GAIA-2 report, tokenizer: encoder ≈ 85M and a larger decoder ≈ 200M; 448×960 → 14×30 per step, 8 frames per
+    step, 64 channels, 3 latent steps (24 frames) decoded together."""
     cfg = OmegaConf.load(CONF_DIR / "model" / "net" / "gaia2_video_tokenizer_paper.yaml")
     with torch.device("meta"):
         net = instantiate(cfg)()

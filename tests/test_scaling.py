@@ -1,4 +1,5 @@
-"""Scaling laws (GAIA-1 §6, issue 8): the power-law fit, N and C, and the `experiment=gaia1/scaling` sweep end to end."""
+"""Scaling laws (GAIA-1 §6, issue 8): the power-law fit, N and C, and the `experiment=gaia1/scaling` sweep end to
+end."""
 
 from __future__ import annotations
 
@@ -11,7 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gaia_app.eval.scaling import PowerLaw, extrapolation_error, fit_power_law, non_embedding_parameters, training_compute
+from gaia_app.eval.scaling import (
+    PowerLaw,
+    extrapolation_error,
+    fit_power_law,
+    non_embedding_parameters,
+    training_compute,
+)
 from gaia_app.models.gaia1.world_model import WorldModel
 from tests.conftest import ROOT
 

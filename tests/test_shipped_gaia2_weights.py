@@ -77,8 +77,9 @@ def test_fine_tuning_the_shipped_world_model_end_to_end(tmp_path: Path) -> None:
     for name, start in (("tuned", []), ("fresh", ["model.init_from=null"])):
         run = tmp_path / name
         train(compose_config("train", ["experiment=gaia2/world_model_finetune", "trainer=tiny", *rig[1:],
-                                       f"data.path={latents}", "data.steps=2", "data.batch_size=2", "data.num_workers=0",
-                                       "trainer.max_steps=1", "trainer.val_check_interval=1", "logger=csv", *start],
+                                       f"data.path={latents}", "data.steps=2", "data.batch_size=2",
+                                       "data.num_workers=0", "trainer.max_steps=1", "trainer.val_check_interval=1",
+                                       "logger=csv", *start],
                              run))
         metrics = next(run.rglob("metrics.csv")).read_text().splitlines()
         header = metrics[0].split(",")
@@ -89,8 +90,9 @@ def test_fine_tuning_the_shipped_world_model_end_to_end(tmp_path: Path) -> None:
     generate(compose_config("generate", ["model=gaia2", "mode=export", "weights=gaia2", *rig, f"out_dir={folder}",
                                          f"world_model_ckpt={tmp_path / 'tuned' / 'checkpoints' / 'last.ckpt'}"],
                             tmp_path / "export"))
-    cfg = compose_config("generate", ["model=gaia2", "mode=scratch", f"weights={folder}", *rig, "model.steps=2", "model.context_steps=1",
-                                      "model.sampler.steps=2", "model.sampler.progress=false", "num_futures=1"],
+    cfg = compose_config("generate", ["model=gaia2", "mode=scratch", f"weights={folder}", *rig, "model.steps=2",
+                                      "model.context_steps=1", "model.sampler.steps=2", "model.sampler.progress=false",
+                                      "num_futures=1"],
                          tmp_path / "generate")
     generate(cfg)
     assert np.isfinite(np.load(tmp_path / "generate" / "latents.npy")).all()

@@ -19,8 +19,8 @@ from gaia_app.data.video_io import video_info
 from gaia_app.eval.controllability import save_probes
 from gaia_app.models.probes import InverseDynamicsProbe, SceneAttributeProbe
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
-from gaia_app.utils.shipped import WEIGHTS_ROOT, load_nets, shipped_folder
 from gaia_app.tasks.generate import generate
+from gaia_app.utils.shipped import WEIGHTS_ROOT, load_nets, shipped_folder
 from tests.conftest import compose_config
 from tests.test_generate_rollouts import SIZE, checkpoints, run  # noqa: F401  (checkpoints is a fixture)
 
@@ -50,7 +50,8 @@ def test_weights_rebuild_the_nets_of_the_checkpoints(checkpoints, shipped: Path)
     with torch.no_grad():
         same = (rebuilt.tokenizer.encode(frames) == trained.tokenizer.encode(frames)).float().mean()
         decoded = rebuilt.tokenizer.decode(trained.tokenizer.encode(frames))
-        torch.testing.assert_close(decoded, trained.tokenizer.decode(trained.tokenizer.encode(frames)), atol=2e-2, rtol=0)
+        torch.testing.assert_close(decoded, trained.tokenizer.decode(trained.tokenizer.encode(frames)),
+                                   atol=2e-2, rtol=0)
     assert same > 0.95  # float16 storage may flip a near tie between two codes, rarely
     captions = [["It is night."] * 2]
     torch.testing.assert_close(rebuilt.text_encoder(captions), trained.text_encoder(captions), atol=1e-3, rtol=1e-3)
@@ -58,7 +59,8 @@ def test_weights_rebuild_the_nets_of_the_checkpoints(checkpoints, shipped: Path)
 
 def test_generation_and_controllability_run_from_weights_alone(shipped: Path, tmp_path: Path) -> None:
     cfg = compose_config("generate", ["mode=action", f"weights={shipped}", "speed=brake", "curvature=left",
-                                      "num_futures=1", "seconds=0.5", "extras.print_config=false", *SIZE], tmp_path / "a")
+                                      "num_futures=1", "seconds=0.5", "extras.print_config=false", *SIZE],
+                         tmp_path / "a")
     results = generate(cfg)["results"]
     assert (tmp_path / "a" / "grid.mp4").is_file() and results["fps"] == 6.25
     args = ["mode=controllability", f"weights={shipped}", "seconds=0.5", "controllability.contexts=2",
@@ -89,9 +91,11 @@ def foreign_target(folder: Path, name: str, target: str = "os.system") -> None:
     # starts like a gaia_app net but resolves to torch.load
     (lambda f: foreign_target(f, "tokenizer.yaml", "gaia_app.models.gaia1.tokenizer.torch.load"), ValueError,
      r"is refused.*resolves to torch.serialization.load.*export it again"),
-    (lambda f: (f / "tokenizer.yaml").write_text("format: 7\n"), ValueError, r"tokenizer.yaml: expected a weights config"),
+    (lambda f: (f / "tokenizer.yaml").write_text("format: 7\n"), ValueError,
+     r"tokenizer.yaml: expected a weights config"),
 ])
-def test_damaged_weights_are_named_with_how_to_restore_them(shipped: Path, tmp_path: Path, damage, error, match) -> None:
+def test_damaged_weights_are_named_with_how_to_restore_them(shipped: Path, tmp_path: Path, damage, error,
+                                                            match) -> None:
     folder = tmp_path / "weights"
     shutil.copytree(shipped, folder)
     damage(folder)
@@ -108,7 +112,8 @@ def test_inside_the_package_the_hint_says_how_to_restore(tmp_path: Path) -> None
 
 def test_weights_and_checkpoints_together_are_refused(checkpoints, shipped: Path, tmp_path: Path) -> None:  # noqa: F811
     with pytest.raises(ValueError, match="replaces the checkpoints; drop tokenizer_ckpt"):
-        run({"tokenizer_ckpt": checkpoints["tokenizer_ckpt"]}, tmp_path, "mode=video", f"weights={shipped}", decoder=False)
+        run({"tokenizer_ckpt": checkpoints["tokenizer_ckpt"]}, tmp_path, "mode=video", f"weights={shipped}",
+            decoder=False)
 
 
 def test_cross_entropy_report_scores_every_mode_against_the_baselines(checkpoints, tmp_path: Path) -> None:  # noqa: F811
@@ -131,7 +136,8 @@ def test_reproduce_lists_every_step_of_the_recipe(capsys) -> None:
     commands = capsys.readouterr().out.strip().splitlines()
     assert [c.split()[1] for c in commands] == ["train.py", "generate.py", "train.py", "generate.py", "train.py", "-m",
                                                 "benchmarks/probe_quality.py", "generate.py", "train.py", "generate.py"]
-    assert "experiment=gaia1/reference/tokenizer" in commands[0] and "experiment=gaia1/reference/world_model" in commands[2]
+    assert "experiment=gaia1/reference/tokenizer" in commands[0]
+    assert "experiment=gaia1/reference/world_model" in commands[2]
     assert "data.source.driven_share=1.0" in commands[3] and "seed=5" in commands[3]
     assert "experiment=gaia1/reference/world_model_finetune" in commands[4]
     assert "model.init_from=outputs/reference/world_model/checkpoints/last.ckpt" in commands[4]
@@ -160,7 +166,8 @@ def test_reproduce_gpu_adds_the_gpu_and_less_snow_fine_tunes_whose_model_the_lat
                for c in (commands[10], commands[-1]))
 
 
-def test_reproduce_until_stops_after_the_step_and_resumes_past_recorded_steps(tmp_path: Path, monkeypatch, capsys) -> None:
+def test_reproduce_until_stops_after_the_step_and_resumes_past_recorded_steps(tmp_path: Path, monkeypatch,
+                                                                              capsys) -> None:
     from gaia_app.tasks import reproduce
 
     ran = []
@@ -195,21 +202,23 @@ def test_showcase_steers_one_context_four_ways_and_prompts_against_none(shipped:
         assert video_info(tmp_path / panel / "grid.mp4").num_frames == (6 if panel == "commands" else 4)
         png = cv2.imread(str(tmp_path / panel / "strip.png"))
         assert png.shape[0] == rows * 32 * 2  # one row per video, upscaled 2×
-    entities = {chunk.entity_path for chunk in RrdReader(str(tmp_path / "showcase.rrd")).stream().collect().stream().to_chunks()}
-    assert {"/actions/speed/brake_straight", "/actions/curvature/keep_left", "/commands/real", "/commands/real_tokenized",
-            "/prompts/It_is_night"} <= entities
+    chunks = RrdReader(str(tmp_path / "showcase.rrd")).stream().collect().stream().to_chunks()
+    entities = {chunk.entity_path for chunk in chunks}
+    assert {"/actions/speed/brake_straight", "/actions/curvature/keep_left", "/commands/real",
+            "/commands/real_tokenized", "/prompts/It_is_night"} <= entities
     assert "| brake / straight |" in (tmp_path / "showcase.md").read_text()
 
 
-def test_a_world_model_trains_on_the_shipped_tokenizer_and_exports_beside_it(checkpoints, shipped: Path,
-                                                                              tmp_path: Path) -> None:  # noqa: F811
+def test_a_world_model_trains_on_the_shipped_tokenizer_and_exports_beside_it(checkpoints, shipped: Path,  # noqa: F811
+                                                                              tmp_path: Path) -> None:
     """mode=tokenize weights= makes a token cache with a weights folder's tokenizer; mode=export weights= then
     writes a folder with that tokenizer (copied unchanged), the new world model and the folder's probes."""
     from gaia_app.data.token_cache import find_segments
 
     out = tmp_path / "tokens"
     cfg = compose_config("generate", ["mode=tokenize", f"weights={shipped}", "data=synthetic_tiny", "splits=[train]",
-                                      "max_clips=2", *SIZE, f"out_dir={out}", "extras.print_config=false"], tmp_path / "t")
+                                      "max_clips=2", *SIZE, f"out_dir={out}", "extras.print_config=false"],
+                         tmp_path / "t")
     assert generate(cfg)["results"]["train"]["written"] == 2
     tokens = np.load(find_segments(out / "train")[0])
     assert tokens.shape[1:] == (8, 12)  # the shipped tokenizer's grid at 32×48
@@ -341,7 +350,8 @@ def test_controllability_shares_noise_within_a_context_when_asked(shipped: Path,
 
     monkeypatch.setattr(controllability, "rollout_frames", recording)
     cfg = compose_config("generate", ["mode=controllability", f"weights={shipped}", "seconds=0.5",
-                                      "controllability.contexts=2", "controllability.commands=[[brake,left],[keep,right]]",
+                                      "controllability.contexts=2",
+                                      "controllability.commands=[[brake,left],[keep,right]]",
                                       f"controllability.shared_noise={str(shared).lower()}", *SIZE], tmp_path)
     pipeline = controllability.load_pipeline(cfg, video_decoder=False)
     probe = controllability.probes_for(cfg, pipeline, 6, tmp_path)[0]

@@ -144,7 +144,8 @@ def test_steps_build_no_autograd_graph_and_keep_their_streams(pipeline: Gaia1Pip
     env.step([10.0, 0.01])
     keys, values = env.session.stream.cache.buffers[0]
     assert not (keys.requires_grad or values.requires_grad or env.session.streams.actions.requires_grad)
-    with pytest.raises(ValueError, match=r"opened with streams \('actions',\); these steps bring \('text', 'actions'\)"):
+    with pytest.raises(ValueError,
+                       match=r"opened with streams \('actions',\); these steps bring \('text', 'actions'\)"):
         pipeline.rollouts.extend_session(env.session, torch.zeros(1, 2, 2), text=torch.zeros(1, 2, 4, 64))
 
 
@@ -205,7 +206,8 @@ def test_the_controller_commands_from_the_estimate_not_the_raw_reading() -> None
     filtered = keepers["filtered"]
     command, estimate = filtered.command, filtered.next(40.0)
     assert 12.0 < estimate < 12.0 + 0.25 * 28  # a settled gain takes a small share of the outlier
-    assert filtered.command == speed_command(command, estimate, 12.0, 0.5, 0.48) and abs(filtered.command - 12) <= 0.48 + 1e-9
+    assert filtered.command == speed_command(command, estimate, 12.0, 0.5, 0.48)
+    assert abs(filtered.command - 12) <= 0.48 + 1e-9
     keepers["previous"].next(40.0)
     assert keepers["previous"].command == pytest.approx(40.0 - 0.48)
     assert speed_command(8.0, 12.0, 12.0, 0.5, 1.0) == 8.0  # on target: the command keeps what it has

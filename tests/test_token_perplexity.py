@@ -1,4 +1,5 @@
-"""GAIA-1 Fig. 6 (§5.1): per-position perplexity of real, argmax, sampled and top-k frames; its PNG and Rerun outputs."""
+"""GAIA-1 Fig. 6 (§5.1): per-position perplexity of real, argmax, sampled and top-k frames; its PNG and Rerun
+outputs."""
 
 from __future__ import annotations
 
@@ -31,7 +32,8 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 @pytest.fixture(scope="module")
 def net() -> WorldModel:
     torch.manual_seed(0)
-    net = WorldModel(V, dim=32, depth=2, heads=4, kv_heads=2, frames=T, text_tokens=M, image_tokens=N, text_dim=E).eval()
+    net = WorldModel(V, dim=32, depth=2, heads=4, kv_heads=2, frames=T, text_tokens=M, image_tokens=N,
+                     text_dim=E).eval()
     with torch.no_grad():  # a peaked distribution, as a trained model has: random init is nearly uniform
         net.head.weight.mul_(20.0)
     return net
@@ -52,7 +54,8 @@ def result(net: WorldModel, data) -> FramePerplexity:
     return frame_perplexity(net, context, real, cond, k=K, generator=torch.Generator().manual_seed(2))
 
 
-def teacher_forced_log_probs(net: WorldModel, context: torch.Tensor, frame: torch.Tensor, cond: Conditions) -> torch.Tensor:
+def teacher_forced_log_probs(net: WorldModel, context: torch.Tensor, frame: torch.Tensor,
+                             cond: Conditions) -> torch.Tensor:
     """log p(· | context, frame_<i) for every position i: (b, n, V), from one plain forward."""
     with torch.no_grad():
         return net(torch.cat([context, frame[:, None]], dim=1), cond)[:, -1].log_softmax(-1)

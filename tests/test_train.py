@@ -21,7 +21,8 @@ TINY = ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "data=synthetic_frame
 def trained_run(tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("run")
     # 5 steps, checkpoints every 2: the final step is off the grid and must still reach last.ckpt
-    cfg = compose_config("train", [*TINY, "trainer.max_steps=5", "callbacks.model_checkpoint.every_n_train_steps=2"], run_dir)
+    cfg = compose_config("train", [*TINY, "trainer.max_steps=5", "callbacks.model_checkpoint.every_n_train_steps=2"],
+                         run_dir)
     out = train(cfg)
     assert out["trainer"].global_step == 5
     return run_dir
@@ -80,7 +81,8 @@ def test_lightning_module_overfits_a_batch(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_cli_help_lists_groups_and_fast_dev_run(tmp_path: Path) -> None:
-    help_text = subprocess.run([sys.executable, "train.py", "--help"], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    help_text = subprocess.run([sys.executable, "train.py", "--help"], cwd=ROOT, capture_output=True, text=True,
+                               check=True).stdout
     for group in ("data:", "model:", "trainer:", "debug:", "logger:", "experiment/gaia1:"):
         assert group in help_text
     subprocess.run([sys.executable, "train.py", "debug=fdr", "data=synthetic_frames_tiny", f"hydra.run.dir={tmp_path}"],
@@ -97,8 +99,8 @@ def test_trains_on_a_user_clip_folder(tmp_path: Path) -> None:
     for seed in range(3):
         write_clip(generate_clip(seed=seed, height=72, width=128, cameras=["front"], clip_len=6, fps=25.0), root)
     cfg = compose_config("train", [*TINY, "data=video_folder_frames", f"data.source.root={root}", "data.height=64",
-                                   "data.width=112", "data.batch_size=2", "data.num_workers=0", "data.val_fraction=0.34",
-                                   "trainer.max_steps=2", "logger=csv"], tmp_path / "run")
+                                   "data.width=112", "data.batch_size=2", "data.num_workers=0",
+                                   "data.val_fraction=0.34", "trainer.max_steps=2", "logger=csv"], tmp_path / "run")
     out = train(cfg)
     assert out["trainer"].global_step == 2
     dm = out["datamodule"]

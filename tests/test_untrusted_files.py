@@ -210,7 +210,8 @@ def test_a_stored_decoder_sampler_is_built_only_from_the_diffusion_package(tmp_p
 
     marker = tmp_path / "pwned"
     for sampler in ({"_target_": "gaia_app.diffusion.samplers.torch.save", "obj": 1, "f": str(marker)},
-                    {"_target_": "gaia_app.diffusion.samplers.DDIMSampler", "_partial_": True, "steps": creating(marker)}):
+                    {"_target_": "gaia_app.diffusion.samplers.DDIMSampler", "_partial_": True,
+                     "steps": creating(marker)}):
         with pytest.raises((UnsafeTargetError, UntrustedDataError), match="video decoder checkpoint's model config"):
             decoder_sampling({"sampler": sampler}, steps=None)
     assert not marker.exists()

@@ -34,8 +34,9 @@ def tokenizer_ckpt(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def decoder_run(tokenizer_ckpt: Path, tmp_path_factory) -> Path:
     run = tmp_path_factory.mktemp("decoder")
-    overrides = ["experiment=gaia1/video_decoder_tiny", "trainer=tiny", "trainer.max_steps=3", "trainer.val_check_interval=3",
-                 f"model.tokenizer_ckpt={tokenizer_ckpt}", "data.source.num_clips=4", "data.val_source.num_clips=2",
+    overrides = ["experiment=gaia1/video_decoder_tiny", "trainer=tiny", "trainer.max_steps=3",
+                 "trainer.val_check_interval=3", f"model.tokenizer_ckpt={tokenizer_ckpt}", "data.source.num_clips=4",
+                 "data.val_source.num_clips=2",
                  "extras.print_config=false", "logger=none", "callbacks=model_checkpoint", *TINY_NET]
     out = train(compose_config("train", overrides, run))
     assert out["trainer"].global_step == 3
@@ -131,7 +132,8 @@ def grey_render(tokens: torch.Tensor) -> torch.Tensor:
 
 
 def residual_net(scale: float) -> VideoDecoder:
-    return VideoDecoder(vocab_size=16, token_grid=(2, 4), image_size=(8, 16), frames=7, channels=8, channel_mults=(1, 2),
+    return VideoDecoder(vocab_size=16, token_grid=(2, 4), image_size=(8, 16), frames=7, channels=8,
+                        channel_mults=(1, 2),
                         attention_levels=(1,), heads=2, token_dim=8, render_tokens=True, residual=True,
                         residual_scale=scale).eval()
 

@@ -5,8 +5,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gaia_app.pipelines.gaia1_video_decoder import (VideoDecodingPipeline, backward_windows, forward_windows, full_length,
-                                                    interpolation_windows)
+from gaia_app.pipelines.gaia1_video_decoder import (
+    VideoDecodingPipeline,
+    backward_windows,
+    forward_windows,
+    full_length,
+    interpolation_windows,
+)
 
 
 @pytest.mark.parametrize("n", [1, 5, 7, 8, 12, 13, 26])
@@ -17,7 +22,8 @@ def test_backward_windows_cover_every_frame_with_two_overlapping_context_frames(
     for i, (start, stop) in enumerate(windows):
         assert 0 <= start < stop <= n and stop - start <= 7
         if i:  # later windows end with exactly the 2 frames decoded just before
-            assert stop - windows[i - 1][0] == 2 and covered[stop - 2 : stop].all() and not covered[start : stop - 2].any()
+            assert (stop - windows[i - 1][0] == 2 and covered[stop - 2 : stop].all()
+                    and not covered[start : stop - 2].any())
         covered[start:stop] = True
     assert covered.all()
 

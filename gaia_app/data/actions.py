@@ -199,6 +199,7 @@ def actions_from_labels(
     for channel, (name, limit) in enumerate(LABEL_RANGES.items()):
         outside = np.flatnonzero(np.abs(actions[:, channel]) > limit)
         if len(outside):
-            raise ClipError(f"{where}: {name} {float(actions[outside[0], channel]):g} at frame {int(outside[0])} is outside "
+            raise ClipError(f"{where}: {name} {float(actions[outside[0], channel]):g} at frame {int(outside[0])} "
+                            "is outside "
                             f"[-{limit:g}, {limit:g}] {'m/s' if name == 'speed' else '1/m'} (wrong units?)")
     return actions

@@ -206,7 +206,10 @@ class Clip:
     def select_frames(self, index: np.ndarray | list[int]) -> "Clip":
         """A clip holding only the frames at `index` (e.g. a temporal window or a resampling)."""
         idx = np.asarray(index, dtype=np.int64)
-        pick = (lambda seq: None if seq is None else [seq[i] for i in idx])
+
+        def pick(seq: Any) -> list | None:
+            return None if seq is None else [seq[i] for i in idx]
+
         return replace(
             self,
             frames=self.frames[:, idx],

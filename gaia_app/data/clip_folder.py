@@ -332,7 +332,10 @@ def read_clip(
             raise ClipError(f"{layout.clip_dir}: camera '{layout.names[0]}' decoded {len(views[0])} frames "
                             f"but camera '{name}' decoded {len(view)}")
     labels = layout.labels
-    pick = (lambda seq: None if seq is None else seq[window])
+
+    def pick(seq: Any) -> Any:
+        return None if seq is None else seq[window]
+
     return Clip(
         clip_id=layout.clip_dir.name,
         frames=np.stack(views).transpose(0, 1, 4, 2, 3),  # (v, t, h, w, 3) -> (v, t, 3, h, w)

@@ -75,7 +75,8 @@ def collate_token_windows(samples: list[dict[str, Any]]) -> dict[str, Any]:
     for key in sorted(set().union(*samples)):
         have = [key in s for s in samples]
         if not all(have):
-            raise ClipError(f"token batch mixes windows with and without '{key}' ({sum(have)} of {len(samples)} have it)")
+            raise ClipError(f"token batch mixes windows with and without '{key}' "
+                            f"({sum(have)} of {len(samples)} have it)")
         values = [s[key] for s in samples]
         batch[key] = values if key == "text" else torch.stack(values)
     return batch

@@ -161,12 +161,14 @@ class ClipSourceDataModule(L.LightningDataModule, ABC):
         if not self.balance:
             return None
         features = dict(self.balance["features"])
-        weights = balancing_weights(source_features(self.train_clips, list(features)), features, self.balance["exponent"])
+        weights = balancing_weights(source_features(self.train_clips, list(features)), features,
+                                    self.balance["exponent"])
         return BalancedSampler(weights, seed=self.split_seed)
 
     def _loader(self, dataset: Dataset, shuffle: bool, sampler=None) -> DataLoader:
         return DataLoader(dataset, batch_size=self.batch_size, shuffle=shuffle and sampler is None, sampler=sampler,
-                          num_workers=self.num_workers, collate_fn=self.collate, persistent_workers=self.num_workers > 0,
+                          num_workers=self.num_workers, collate_fn=self.collate,
+                          persistent_workers=self.num_workers > 0,
                           drop_last=shuffle and len(dataset) >= self.batch_size)
 
     def train_dataloader(self) -> DataLoader:
@@ -202,7 +204,8 @@ class ClipDataModule(ClipSourceDataModule):
     None keeps the source rate; cameras: camera names to keep, in order (None keeps all).
     """
 
-    def __init__(self, *args, clip_len: int = 8, fps: float | None = None, cameras: Sequence[str] | None = None, **kwargs):
+    def __init__(self, *args, clip_len: int = 8, fps: float | None = None, cameras: Sequence[str] | None = None,
+                 **kwargs):
         super().__init__(*args, **kwargs)
         self.clip_len, self.fps, self.cameras = check_count(clip_len, "data.clip_len"), fps, cameras
         self.skipped_short = 0  # clips dropped at setup for being shorter than one window

@@ -81,7 +81,8 @@ class ClipsDataset(Dataset):
         if self.fps is not None:
             clip = resample_clip(clip, self.fps)
         if clip.num_frames < self.clip_len:
-            raise ClipError(f"clip '{clip.clip_id}': {clip.num_frames} frames at {self.fps} Hz, need clip_len={self.clip_len}")
+            raise ClipError(f"clip '{clip.clip_id}': {clip.num_frames} frames at {self.fps} Hz, "
+                            f"need clip_len={self.clip_len}")
         last = clip.num_frames - self.clip_len
         start = int(torch.randint(0, last + 1, ()).item()) if self.random_window else 0
         return clip.select_frames(np.arange(start, start + self.clip_len))

@@ -45,7 +45,8 @@ class LatentWindows(Dataset):
         return random_latent_window(self.clips[index], self.steps, self.metadata, self.random_window)
 
 
-def random_latent_window(clip: LatentClip, steps: int, metadata: MetadataEncoder, random_window: bool) -> dict[str, Any]:
+def random_latent_window(clip: LatentClip, steps: int, metadata: MetadataEncoder,
+                         random_window: bool) -> dict[str, Any]:
     """A window of `steps` latent steps of `clip` at a random start (random_window) or at its start."""
     last = clip.mean.shape[1] - steps
     if last < 0:
@@ -89,7 +90,8 @@ def collate_latent_windows(samples: list[dict[str, Any]]) -> dict[str, Any]:
     sizes = {tuple(s["image_size"]) for s in samples}
     if len(sizes) > 1:
         raise ClipError(f"latent batch mixes image sizes {sorted(sizes)}")
-    stack_labels(samples, ("mean", "logvar", "timestamps", "actions", "intrinsics", "extrinsics", "agents", "text"), batch)
+    stack_labels(samples, ("mean", "logvar", "timestamps", "actions", "intrinsics", "extrinsics", "agents", "text"),
+                 batch)
     fields = samples[0]["metadata"].keys()
     batch["metadata"] = {name: torch.tensor([s["metadata"][name] for s in samples]) for name in fields}
     return batch

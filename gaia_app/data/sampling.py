@@ -34,7 +34,8 @@ def bin_feature(values: Sequence, bins: int | Sequence[float] | None) -> np.ndar
     return np.clip(np.digitize(arr, edges[1:-1]), 0, len(edges) - 2)
 
 
-def balancing_weights(features: Mapping[str, Sequence], bins: Mapping[str, int | Sequence[float] | None], exponent: float) -> np.ndarray:
+def balancing_weights(features: Mapping[str, Sequence], bins: Mapping[str, int | Sequence[float] | None],
+                      exponent: float) -> np.ndarray:
     """Joint acceptance weights (n,) in (0, 1]: the per-feature inverse-frequency weights multiplied."""
     if not features:
         raise ValueError("balancing_weights: no features given")

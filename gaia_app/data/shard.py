@@ -127,11 +127,13 @@ def clip_samples(root: Path) -> tuple[list[SampleSource], Any]:
     for i, clip_id in enumerate(tqdm(dataset.clip_ids, desc="scan clips")):
         meta = {k: v for k, v in dataset.describe(i).items() if isinstance(v, (str, int, float, bool))}
         actions = read_clip(root / clip_id).actions if {"speed", "curvature"} - set(meta) else None
-        out.append(SampleSource(encode_name(clip_id), folder_files(root / clip_id), {**meta, **action_features(actions)}))
+        out.append(SampleSource(encode_name(clip_id), folder_files(root / clip_id),
+                                {**meta, **action_features(actions)}))
     return out, dataset
 
 
-def split_samples(kind: str, root: Path, val_fraction: float, seed: int, split_by: str) -> dict[str, list[SampleSource]]:
+def split_samples(kind: str, root: Path, val_fraction: float, seed: int,
+                  split_by: str) -> dict[str, list[SampleSource]]:
     """The splits to write (module docstring)."""
     if kind == "latents":
         splits = {name: latent_samples(root / name) for name in ("train", "val") if (root / name).is_dir()}
@@ -295,7 +297,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--val-fraction", type=float, default=0.0,
                         help="clip roots and token caches: share of clips (or runs) written as the val split")
     parser.add_argument("--split-by", default="run", choices=("clip", "run"),
-                        help="clip roots: hold out whole runs (default, the clips' run_id/source_video/sequence) or clips")
+                        help="clip roots: hold out whole runs (default, the clips' run_id/source_video/sequence) "
+                             "or clips")
     parser.add_argument("--seed", type=int, default=0, help="seed of the validation draw")
     parser.add_argument("--overwrite", action="store_true",
                         help="remove the shards an earlier run left in OUT and start clean (needed when the source "

@@ -25,11 +25,11 @@ import io
 import json
 import logging
 import shutil
-from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
 import tempfile
 import weakref
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,8 +39,8 @@ import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from gaia_app.data.clip import ClipError
-from gaia_app.data.shard_format import INDEX, decode_name
 from gaia_app.data.sampling import balancing_weights
+from gaia_app.data.shard_format import INDEX, decode_name
 
 log = logging.getLogger(__name__)
 REMOTE = ("http://", "https://", "pipe:", "s3://", "gs://")
@@ -122,9 +122,9 @@ class ShardStream(IterableDataset):
             skipped; otherwise (default) it stops the run with that message.
     """
 
-    def __init__(self, urls: Sequence[str], decode: Callable[[str, dict[str, bytes]], list[Any]], collate: Callable[[list], Any],
-                 batch_size: int, shuffle: bool = True, shuffle_buffer: int = 256, weights: np.ndarray | None = None,
-                 seed: int = 0, skip_bad: bool = False):
+    def __init__(self, urls: Sequence[str], decode: Callable[[str, dict[str, bytes]], list[Any]],
+                 collate: Callable[[list], Any], batch_size: int, shuffle: bool = True, shuffle_buffer: int = 256,
+                 weights: np.ndarray | None = None, seed: int = 0, skip_bad: bool = False):
         self.urls, self.decode, self.collate = list(urls), decode, collate
         self.batch_size, self.shuffle, self.shuffle_buffer = batch_size, shuffle, shuffle_buffer
         self.weights, self.seed, self.skip_bad = weights, seed, skip_bad
@@ -282,7 +282,8 @@ def acceptance(folder: str | None, split: str, balance: dict[str, Any] | None) -
     features = dict(balance["features"])
     missing = sorted(set(features) - set(table.files))
     if missing:
-        raise ValueError(f"data.balance.features {missing}: not in the shards' feature table (has {sorted(table.files)})")
+        raise ValueError(f"data.balance.features {missing}: not in the shards' feature table "
+                         f"(has {sorted(table.files)})")
     return balancing_weights({name: table[name] for name in features}, features, balance["exponent"])
 
 
@@ -324,7 +325,8 @@ class ShardDataModule(L.LightningDataModule, ABC):
         if split not in self.loaders:
             urls, index = self.urls(split)
             train = split == "train"
-            weights = acceptance(self.index_dir or (self.path if index else None), split, self.balance) if train else None
+            weights = (acceptance(self.index_dir or (self.path if index else None), split, self.balance) if train
+                       else None)
             stream = ShardStream(urls, self.decoder(train), self.collate(), self.batch_size, shuffle=train,
                                  shuffle_buffer=self.shuffle_buffer, weights=weights, seed=self.seed,
                                  skip_bad=self.skip_bad_samples)
@@ -364,11 +366,12 @@ class TokenDecoder:
     def __call__(self, key: str, files: dict[str, bytes]) -> list[Any]:
         from gaia_app.data.token_cache import read_segment
 
-        sidecars = {name.removeprefix("tokens"): io.BytesIO(data) for name, data in files.items() if name != "tokens.npy"}
+        sidecars = {name.removeprefix("tokens"): io.BytesIO(data)
+                    for name, data in files.items() if name != "tokens.npy"}
         # tokens stay in their stored type (int16 for codebooks that fit) until the main process (`widen_tokens`):
         # a quarter of the bytes through the worker queues
-        segment = read_segment(key, io.BytesIO(files["tokens.npy"]), sidecars, self.frame_stride, f"shard sample {key}.npy",
-                               stored_dtype=True)
+        segment = read_segment(key, io.BytesIO(files["tokens.npy"]), sidecars, self.frame_stride,
+                               f"shard sample {key}.npy", stored_dtype=True)
         starts = range(0, len(segment.tokens) - self.seq_len + 1, self.stride)
         return [(segment, start, self.seq_len) for start in starts]
 

@@ -33,7 +33,8 @@ SIDECARS = (".actions.npy", ".timestamps.npy", ".text.json")
 @dataclass
 class TokenSegment:
     """tokens: (T, n) int64 as loaded ((T, h, w) or (T, n) integer to write); name: the file stem;
-    actions: (T, 2) float32 or None; timestamps: (T,) float64 seconds or None; text: T captions (None entries allowed) or None."""
+    actions: (T, 2) float32 or None; timestamps: (T,) float64 seconds or None; text: T captions (None entries
+    allowed) or None."""
 
     name: str
     tokens: np.ndarray
@@ -64,7 +65,8 @@ def read_segment(name: str, tokens_file: Any, sidecars: dict[str, Any], frame_st
     tokens = tokens.reshape(len(tokens), -1)[::frame_stride]
     tokens = tokens if stored_dtype else tokens.astype(np.int64)
     stem = where.removesuffix(".npy")
-    actions = _load_sidecar(sidecars.get(".actions.npy"), stem + ".actions.npy", np.float32, (len(tokens), 2), frame_stride)
+    actions = _load_sidecar(sidecars.get(".actions.npy"), stem + ".actions.npy", np.float32, (len(tokens), 2),
+                            frame_stride)
     timestamps = _load_sidecar(sidecars.get(".timestamps.npy"), stem + ".timestamps.npy", np.float64, (len(tokens),),
                                frame_stride)
     text = None
@@ -72,7 +74,8 @@ def read_segment(name: str, tokens_file: Any, sidecars: dict[str, Any], frame_st
         source = sidecars[".text.json"]
         text = json.loads(source.read_text() if isinstance(source, Path) else source.read())[::frame_stride]
         if len(text) != len(tokens):
-            raise ClipError(f"{stem}.text.json: {len(text)} captions, expected {len(tokens)} after stride {frame_stride}")
+            raise ClipError(f"{stem}.text.json: {len(text)} captions, "
+                            f"expected {len(tokens)} after stride {frame_stride}")
     return TokenSegment(name, tokens, actions, timestamps, text)
 
 
@@ -172,5 +175,6 @@ def split_spans(segments: list[TokenSegment], val_fraction: float, seq_len: int)
     total = len(segments[0].tokens)
     n_val = max(seq_len, int(round(val_fraction * total)))
     if total < 2 * seq_len + n_val:
-        raise ClipError(f"token segment '{segments[0].name}': {total} steps too short for train+val windows of {seq_len}")
+        raise ClipError(f"token segment '{segments[0].name}': {total} steps too short "
+                        f"for train+val windows of {seq_len}")
     return [(0, 0, total - n_val)], [(0, total - n_val, total)]

@@ -103,7 +103,8 @@ class FlowSampler:
             raise ValueError(f"sampler.solver={solver!r}: expected 'euler' or 'heun'")
         if schedule not in ("linear_quadratic", "uniform"):
             raise ValueError(f"sampler.schedule={schedule!r}: expected 'linear_quadratic' or 'uniform'")
-        self.steps, self.schedule, self.solver, self.threshold, self.progress = steps, schedule, solver, threshold, progress
+        self.steps, self.schedule, self.solver = steps, schedule, solver
+        self.threshold, self.progress = threshold, progress
 
     def taus(self) -> torch.Tensor:
         """The τ grid (steps + 1,)."""

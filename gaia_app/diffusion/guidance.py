@@ -36,7 +36,8 @@ class LinearSchedule:
 
 @dataclass(frozen=True)
 class CosineSchedule:
-    """`plateau` frames at multiplier 1, then cosine decay to `end` at the last frame — GAIA-1 §5.1, Fig. 7 over frames."""
+    """`plateau` frames at multiplier 1, then cosine decay to `end` at the last frame — GAIA-1 §5.1, Fig. 7 over
+    frames."""
 
     plateau: int = 0
     end: float = 0.0
@@ -77,6 +78,7 @@ class ClassifierFreeGuidance:
         """(f, n) guidance scale of each generated token."""
         return self.scale * self.frames(frames)[:, None] * self.tokens(tokens)[None, :]
 
-    def __call__(self, cond_logits: torch.Tensor, uncond_logits: torch.Tensor, scale: float | torch.Tensor) -> torch.Tensor:
+    def __call__(self, cond_logits: torch.Tensor, uncond_logits: torch.Tensor,
+                 scale: float | torch.Tensor) -> torch.Tensor:
         """(b, V) guided logits from the two streams' (b, V) logits."""
         return (1.0 + scale) * cond_logits - scale * uncond_logits

@@ -17,7 +17,8 @@ from gaia_app.diffusion.samplers import Denoiser, ImageVideoBlend, standard_norm
 
 
 class FrameCodec(Protocol):
-    """How a decoder maps frames (b, t, 3, H, W) to what it diffuses and back (gaia_app.models.gaia1's ResidualFrame)."""
+    """How a decoder maps frames (b, t, 3, H, W) to what it diffuses and back (gaia_app.models.gaia1's
+    ResidualFrame)."""
 
     def encode(self, frames: torch.Tensor) -> torch.Tensor: ...
 
@@ -35,7 +36,8 @@ class WindowDenoiser(Protocol):
                  context: torch.Tensor, context_mask: torch.Tensor, temporal: bool = True,
                  rendered: torch.Tensor | None = None) -> torch.Tensor: ...
 
-    def residual_frame(self, rendered: torch.Tensor | None, token_mask: torch.Tensor, like: torch.Tensor) -> FrameCodec: ...
+    def residual_frame(self, rendered: torch.Tensor | None, token_mask: torch.Tensor,
+                       like: torch.Tensor) -> FrameCodec: ...
 
 
 @torch.no_grad()

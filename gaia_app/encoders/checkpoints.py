@@ -28,7 +28,8 @@ def read_state_dict(checkpoint: str | Path, config_key: str) -> StateDict:
     if not path.is_file():
         raise FileNotFoundError(
             f"{config_key}: checkpoint '{path}' does not exist. Put the weights there (see docs/tokenizer.md, "
-            f"'Local checkpoints'), point {config_key}.checkpoint at them, or switch the loss off with {config_key}=none."
+            f"'Local checkpoints'), point {config_key}.checkpoint at them, or switch the loss off with "
+            f"{config_key}=none."
         )
     # weights_only: a checkpoint is data, never code to unpickle
     loaded = torch.load(path, map_location="cpu", weights_only=True)

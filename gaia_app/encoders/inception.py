@@ -17,7 +17,8 @@ def inception_trunk_state_dict(state: StateDict) -> StateDict:
     return {k: v for k, v in state.items() if not k.startswith(("fc.", "AuxLogits."))}
 
 
-def load_inception(checkpoint: str | Path, config_key: str = "eval.fid", fid_variant: bool = True) -> InceptionV3Features:
+def load_inception(checkpoint: str | Path, config_key: str = "eval.fid",
+                   fid_variant: bool = True) -> InceptionV3Features:
     """The Inception-v3 trunk with weights from `checkpoint`; frozen, eval mode. fid_variant: the reference FID
     network's pooling (gaia_app/nn/inception.py); False for plain torchvision ImageNet weights.
     Raises FileNotFoundError naming `config_key` and the path, or StateDictMismatchError listing bad keys."""

@@ -189,12 +189,14 @@ def bootstrap(statistic: Callable[[np.ndarray], np.ndarray], n: int, resamples: 
 def per_clip_overlap(predicted: torch.Tensor, masks: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     """Per-clip (intersection, union) pixel counts of predicted and true masks (N, t, H, W)."""
     if predicted.shape != masks.shape:
-        raise ValueError(f"agent fidelity: predicted masks {tuple(predicted.shape)} and masks {tuple(masks.shape)} differ")
+        raise ValueError(f"agent fidelity: predicted masks {tuple(predicted.shape)} and masks {tuple(masks.shape)} "
+                         "differ")
     dims = tuple(range(1, masks.ndim))
     return (predicted & masks).sum(dims).numpy(), (predicted | masks).sum(dims).numpy()
 
 
-def lead_found(predicted: torch.Tensor, lead: torch.Tensor, share: float = FOUND_SHARE) -> tuple[np.ndarray, np.ndarray]:
+def lead_found(predicted: torch.Tensor, lead: torch.Tensor,
+               share: float = FOUND_SHARE) -> tuple[np.ndarray, np.ndarray]:
     """Per clip: (frames where the probe covers ≥ `share` of the lead vehicle's pixels, frames with a lead vehicle),
     from predicted and lead masks (N, t, H, W)."""
     visible = lead.sum(dim=(2, 3))
@@ -205,7 +207,8 @@ def lead_found(predicted: torch.Tensor, lead: torch.Tensor, share: float = FOUND
 
 
 def lead_share(found: np.ndarray, present: np.ndarray) -> Estimate:
-    """Pooled share of lead frames found, with a bootstrap interval over clips (frames of one clip are not independent)."""
+    """Pooled share of lead frames found, with a bootstrap interval over clips (frames of one clip are not
+    independent)."""
     if present.sum() == 0:
         return Estimate(float("nan"), float("nan"), float("nan"), 0)
     keep = present > 0

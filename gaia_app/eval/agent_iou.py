@@ -43,7 +43,8 @@ def agent_clips(samples: Sequence[SyntheticSample], rate: float, frames: int) ->
 def train_agent_probe(frames: torch.Tensor, masks: torch.Tensor, steps: int = 300, batch: int = 16, lr: float = 2e-3,
                       seed: int = 0, progress: bool = True, sharp: bool = False,
                       widths: tuple[int, ...] = (16, 32, 64)) -> tuple[AgentSegmentationProbe, dict[str, float]]:
-    """Fit the probe on random frames of (N, t, 3, H, W) / (N, t, H, W); returns it (eval mode) and its first/last losses.
+    """Fit the probe on random frames of (N, t, 3, H, W) / (N, t, H, W); returns it (eval mode) and its first/last
+    losses.
 
     sharp: the recipe of benchmarks/agent_fidelity.py: mirrored frames half the time, a soft-Dice term beside the
     cross-entropy (agents cover ~5 % of the pixels, so plain cross-entropy settles for thin masks) and a one-cycle
@@ -75,7 +76,8 @@ def train_agent_probe(frames: torch.Tensor, masks: torch.Tensor, steps: int = 30
     return probe.eval(), {"first_loss": float(np.mean(losses[:10])), "last_loss": float(np.mean(losses[-10:]))}
 
 
-def mirrored(images: torch.Tensor, masks: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+def mirrored(images: torch.Tensor, masks: torch.Tensor,
+             generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """Each (image (3, H, W), mask (H, W)) pair mirrored left-right with probability ½ (roads run both ways)."""
     flip = torch.rand(len(images), generator=generator) < 0.5
     return (torch.where(flip[:, None, None, None], images.flip(-1), images),
@@ -84,7 +86,8 @@ def mirrored(images: torch.Tensor, masks: torch.Tensor, generator: torch.Generat
 
 @torch.no_grad()
 def agent_iou(probe: AgentSegmentationProbe, frames: torch.Tensor, masks: torch.Tensor, chunk: int = 64) -> float:
-    """Pooled IoU of the probe's agent masks on frames (b, t, 3, H, W) with masks (b, t, H, W); nan if both are empty."""
+    """Pooled IoU of the probe's agent masks on frames (b, t, 3, H, W) with masks (b, t, H, W); nan if both are
+    empty."""
     intersection, union = agent_overlap(probe, frames, masks, chunk)
     return intersection / union if union else float("nan")
 
@@ -111,7 +114,8 @@ def overlap_counts(predicted: torch.Tensor, masks: torch.Tensor, region: torch.T
     where given: e.g. the conditioning boxes, and with all-true masks the predicted agent pixels in the region and
     the region's area."""
     if predicted.shape != masks.shape:
-        raise ValueError(f"agent_iou: predicted masks {tuple(predicted.shape)} and masks {tuple(masks.shape)} do not match")
+        raise ValueError(f"agent_iou: predicted masks {tuple(predicted.shape)} and masks {tuple(masks.shape)} "
+                         "do not match")
     if region is not None:
         if region.shape != masks.shape:
             raise ValueError(f"agent_iou: region {tuple(region.shape)} does not match masks {tuple(masks.shape)}")
@@ -130,7 +134,8 @@ def save_agent_probe(probe: AgentSegmentationProbe, folder: str | Path, info: di
     with atomic_path(folder / f"{PROBE_COMPONENT}.safetensors") as tmp:
         save_file(tensors, str(tmp))
     config = {"format": FORMAT, "component": PROBE_COMPONENT, "dtype": "float32",
-              "nets": {"net": {"_target_": "gaia_app.models.probes.AgentSegmentationProbe", "widths": list(probe.widths)}},
+              "nets": {"net": {"_target_": "gaia_app.models.probes.AgentSegmentationProbe",
+                               "widths": list(probe.widths)}},
               "info": info}
     atomic_write_text(folder / f"{PROBE_COMPONENT}.yaml", dump_plain_yaml(config))
     return folder

@@ -62,8 +62,12 @@ def probe_clips(clips: Sequence[Clip], rate: float, frames: int, cameras: Sequen
             raise ValueError(f"probe clip '{clip.clip_id}': {clip.frames.shape[1]} frames at {rate:g} Hz "
                              f"(need {frames}) and actions are required")
         if cameras is not None and not all(0 <= c < clip.num_views for c in cameras):
-            raise ValueError(f"probe clip '{clip.clip_id}': camera indices {list(cameras)}, the clip has {clip.num_views}")
-        views = clip.frames[0, :frames] if cameras is None else rearrange(clip.frames[list(cameras), :frames], "k t ... -> t k ...")
+            raise ValueError(f"probe clip '{clip.clip_id}': camera indices {list(cameras)}, "
+                             f"the clip has {clip.num_views}")
+        if cameras is None:
+            views = clip.frames[0, :frames]
+        else:
+            views = rearrange(clip.frames[list(cameras), :frames], "k t ... -> t k ...")
         out["frames"].append(to_float(torch.from_numpy(np.ascontiguousarray(views))))
         out["actions"].append(torch.from_numpy(clip.actions[:frames]))
         out["labels"].append(attribute_labels(clip))
@@ -78,7 +82,8 @@ def phase_clips(clip: Clip, rate: float, frames: int) -> ProbeClips:
     the frame pairs of one rendered clip."""
     stride = clip.fps / rate
     if abs(stride - round(stride)) > 1e-6:
-        raise ValueError(f"phase_clips: clip '{clip.clip_id}' at {clip.fps:g} Hz is not a whole multiple of {rate:g} Hz")
+        raise ValueError(f"phase_clips: clip '{clip.clip_id}' at {clip.fps:g} Hz "
+                         f"is not a whole multiple of {rate:g} Hz")
     stride = round(stride)
     if clip.actions is None or clip.num_frames < frames * stride:
         raise ValueError(f"phase_clips: clip '{clip.clip_id}' needs actions and {frames * stride} frames "
@@ -108,7 +113,8 @@ def augment_pairs(pair: torch.Tensor, actions: torch.Tensor, generator: torch.Ge
     (b, 2, k, 3, H, W) for a rig whose mirror image puts camera `mirror[j]` where camera j was (a left-right
     symmetric rig: front stays, front_left and front_right swap)."""
     if pair.dim() == 6 and (mirror is None or sorted(mirror) != list(range(pair.shape[2]))):
-        raise ValueError(f"augment_pairs: a rig of {pair.shape[2]} cameras needs its mirror order (a permutation), got {mirror}")
+        raise ValueError(f"augment_pairs: a rig of {pair.shape[2]} cameras needs its mirror order "
+                         f"(a permutation), got {mirror}")
     mirrored = pair.flip(-1) if pair.dim() == 5 else pair.flip(-1)[:, :, list(mirror)]
     flip = torch.rand(len(pair), generator=generator) < 0.5
     pair = torch.where(flip.view(-1, *[1] * (pair.dim() - 1)), mirrored, pair)
@@ -126,7 +132,8 @@ def jitter(pair: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
 
 def train_probes(data: ProbeClips, steps: int = 1500, batch: int = 32, lr: float = 2e-3, seed: int = 0,
                  progress: bool = True, stride: int = 1,
-                 mirror: Sequence[int] | None = None) -> tuple[InverseDynamicsProbe, SceneAttributeProbe, dict[str, float]]:
+                 mirror: Sequence[int] | None = None,
+                 ) -> tuple[InverseDynamicsProbe, SceneAttributeProbe, dict[str, float]]:
     """Fit both probes on random frame pairs / frames of `data` (AdamW, cosine decay to lr/20); returns them in
     eval mode and their first/last losses. The inverse-dynamics probe reads pairs `stride` frames apart and learns
     the mean action over the steps between them (`strided_actions`). With a rig's frames (N, t, k, 3, H, W) it reads
@@ -148,13 +155,15 @@ def train_probes(data: ProbeClips, steps: int = 1500, batch: int = 32, lr: float
         pair = torch.stack([data.frames[clip, step - stride], data.frames[clip, step]], dim=1)
         labels = {name: data.labels[name][clip, step] for name in ATTRIBUTES}
         pair, actions = augment_pairs(pair, moves[clip, step - 1], generator, mirror)
-        loss = dynamics.loss(jitter(pair, generator), actions) + scene.loss(pair[:, 1, 0] if rig else pair[:, 1], labels)
+        loss = (dynamics.loss(jitter(pair, generator), actions)
+                + scene.loss(pair[:, 1, 0] if rig else pair[:, 1], labels))
         optim.zero_grad()
         loss.backward()
         optim.step()
         schedule.step()
         losses.append(float(loss.detach()))
-    return dynamics.eval(), scene.eval(), {"first_loss": float(np.mean(losses[:10])), "last_loss": float(np.mean(losses[-10:]))}
+    return dynamics.eval(), scene.eval(), {"first_loss": float(np.mean(losses[:10])),
+                                           "last_loss": float(np.mean(losses[-10:]))}
 
 
 def strided_actions(actions: torch.Tensor, stride: int) -> torch.Tensor:
@@ -174,11 +183,13 @@ def probed_actions(probe: InverseDynamicsProbe, frames: torch.Tensor, start: int
     t = frames.shape[1]
     if not stride <= start < t:  # a pair must start inside the clip; a negative index would wrap around silently
         raise ValueError(f"probed_actions: start {start} must lie in [stride {stride}, frames {t})")
-    pairs = torch.stack([frames[:, start - stride : t - stride], frames[:, start:]], dim=2)  # (b, t - start, 2, 3, H, W)
+    # (b, t - start, 2, 3, H, W)
+    pairs = torch.stack([frames[:, start - stride : t - stride], frames[:, start:]], dim=2)
     return probe(pairs.flatten(0, 1)).view(*pairs.shape[:2], 2)
 
 
-def action_errors(probe: InverseDynamicsProbe, frames: torch.Tensor, commanded: torch.Tensor, start: int) -> torch.Tensor:
+def action_errors(probe: InverseDynamicsProbe, frames: torch.Tensor, commanded: torch.Tensor,
+                  start: int) -> torch.Tensor:
     """(b, 2) mean absolute error per sequence of the probed (speed, curvature) against `commanded`, over the
     steps into frames start..t-1. frames: (b, t, 3, H, W); commanded: (b, t, 2) (a_{i-1} leads to frame i); start ≥ 1.
     """
@@ -223,7 +234,8 @@ def contrast_errors(probed: torch.Tensor, commanded: torch.Tensor) -> torch.Tens
 
 
 @torch.no_grad()
-def attribute_shares(probe: SceneAttributeProbe, frames: torch.Tensor, targets: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+def attribute_shares(probe: SceneAttributeProbe, frames: torch.Tensor,
+                     targets: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """Per sequence, the share of its frames (b, f, 3, H, W) whose probed class equals targets {attribute: (b,)}
     → {attribute: (b,) in [0, 1]}."""
     logits = probe(frames.flatten(0, 1))
@@ -242,7 +254,8 @@ def save_probes(folder: str | Path, dynamics: InverseDynamicsProbe, scene: Scene
     atomic_write_text(folder / PROBE_INFO, yaml.safe_dump(info, sort_keys=False))
 
 
-def load_probes(folder: str | Path, image_size: tuple[int, int], rate: float) -> tuple[InverseDynamicsProbe, SceneAttributeProbe, dict]:
+def load_probes(folder: str | Path, image_size: tuple[int, int],
+                rate: float) -> tuple[InverseDynamicsProbe, SceneAttributeProbe, dict]:
     """Probes saved by `save_probes`; they must have been trained at this image size and rate."""
     from safetensors import SafetensorError
     from safetensors.torch import load_file
@@ -255,7 +268,8 @@ def load_probes(folder: str | Path, image_size: tuple[int, int], rate: float) ->
                                     f"controllability.probes=null; the run dir's probes/ folder can be reused)")
     info = yaml.safe_load(info_path.read_text()) or {}
     if tuple(info.get("image_size", ())) != tuple(image_size) or float(info.get("rate", -1)) != float(rate):
-        raise ValueError(f"{info_path}: probes trained for image size {info.get('image_size')} at {info.get('rate')} Hz; "
+        raise ValueError(f"{info_path}: probes trained for image size {info.get('image_size')} "
+                         f"at {info.get('rate')} Hz; "
                          f"this pipeline needs {list(image_size)} at {rate:g} Hz")
     try:
         state = load_file(str(weights))
@@ -267,12 +281,14 @@ def load_probes(folder: str | Path, image_size: tuple[int, int], rate: float) ->
         try:
             probe.load_state_dict(part)
         except RuntimeError as error:
-            raise ValueError(f"{weights}: the {name} probe does not match this version's architecture ({error})") from error
+            raise ValueError(f"{weights}: the {name} probe does not match this version's architecture "
+                             f"({error})") from error
         probe.eval()
     return probes[0], probes[1], info
 
 
-def action_error(probe: InverseDynamicsProbe, frames: torch.Tensor, commanded: torch.Tensor, start: int) -> dict[str, float]:
+def action_error(probe: InverseDynamicsProbe, frames: torch.Tensor, commanded: torch.Tensor,
+                 start: int) -> dict[str, float]:
     """`action_errors` averaged over the sequences: {"speed_mae": m/s, "curvature_mae": 1/m}."""
     errors = action_errors(probe, frames, commanded, start)
     return {"speed_mae": float(errors[:, 0].mean()), "curvature_mae": float(errors[:, 1].mean())}

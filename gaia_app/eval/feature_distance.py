@@ -13,8 +13,8 @@ import torch
 
 from gaia_app.encoders.inception import load_inception
 from gaia_app.encoders.vision import load_vision_teacher
-from gaia_app.nn.inception import FEATURE_DIM as INCEPTION_DIM
 from gaia_app.eval.frechet import FrechetStatistics, frechet_distance
+from gaia_app.nn.inception import FEATURE_DIM as INCEPTION_DIM
 
 Extractor = Callable[[torch.Tensor], torch.Tensor]
 
@@ -55,7 +55,8 @@ def fdd(checkpoint: str | Path, kind: str = "dino_vits16", config_key: str = "ev
     return FeatureFrechetDistance(teacher.embed, teacher.feature_dim, batch)
 
 
-def fid(checkpoint: str | Path, config_key: str = "eval.fid", batch: int = 32, fid_variant: bool = True) -> FeatureFrechetDistance:
+def fid(checkpoint: str | Path, config_key: str = "eval.fid", batch: int = 32,
+        fid_variant: bool = True) -> FeatureFrechetDistance:
     """Fréchet Inception Distance over the pool3 features of a local Inception-v3 checkpoint (the FID reference
     weights, or torchvision's with fid_variant=False); frames are resized to 299 × 299."""
     network = load_inception(checkpoint, config_key, fid_variant)

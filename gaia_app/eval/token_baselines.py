@@ -36,7 +36,8 @@ def copy_previous_cross_entropy(tokens: torch.Tensor, vocab: int) -> tuple[float
 
 
 @torch.no_grad()
-def model_cross_entropy(logits_fn: Callable[[torch.Tensor], torch.Tensor], windows: torch.Tensor, batch: int = 8) -> float:
+def model_cross_entropy(logits_fn: Callable[[torch.Tensor], torch.Tensor], windows: torch.Tensor,
+                        batch: int = 8) -> float:
     """Mean eq. 1 cross-entropy (nats/token) over image tokens of frames 2..T, the frames the copy baseline scores.
 
     logits_fn: tokens (b, t, n) → logits (b, t, n, V), e.g. a world model with null conditions.

@@ -144,7 +144,8 @@ class AdversarialModule(GaiaModule):
         terms["adaptive_weight"] = weight
 
     def adversarial_step(self, generate: Callable[[bool], tuple[dict[str, torch.Tensor], Any]],
-                         real_and_fake: Callable[[Any], tuple[torch.Tensor, torch.Tensor]]) -> tuple[dict[str, torch.Tensor], Any]:
+                         real_and_fake: Callable[[Any], tuple[torch.Tensor, torch.Tensor]],
+                         ) -> tuple[dict[str, torch.Tensor], Any]:
         """One generator step on `generate(with_gan)` → (terms with "loss", output), then, once the GAN is active,
         one discriminator step on `real_and_fake(output)` (the fake is detached here). Returns (terms, output)."""
         with_gan = self.gan_active(self.global_step)
@@ -176,7 +177,8 @@ class AdversarialModule(GaiaModule):
         if not self.sched_factory:  # sched=constant composes to an empty node
             return optimizers
         names = ("lr/generator", "lr/discriminator")
-        schedulers = [{"scheduler": self.sched_factory(o), "interval": "step", "name": n} for o, n in zip(optimizers, names)]
+        schedulers = [{"scheduler": self.sched_factory(o), "interval": "step", "name": n}
+                      for o, n in zip(optimizers, names)]
         return optimizers, schedulers
 
     def configure_callbacks(self) -> list:

@@ -12,11 +12,11 @@ from torch.distributed.fsdp import FullyShardedDataParallel
 
 from gaia_app.utils import threads
 
-
 # layers whose weight matrices AdamW decays; everything else (embeddings, positions, null tokens, action
 # projections, norms, biases, bare Parameters) is left alone: decaying a learned null token or a rarely-used
 # embedding row pulls it to zero whatever the data says (GPT-2/minGPT practice)
-DECAYED_LAYERS = (nn.Linear, nn.Conv1d, nn.Conv2d, nn.Conv3d, nn.ConvTranspose1d, nn.ConvTranspose2d, nn.ConvTranspose3d)
+DECAYED_LAYERS = (nn.Linear, nn.Conv1d, nn.Conv2d, nn.Conv3d, nn.ConvTranspose1d, nn.ConvTranspose2d,
+                  nn.ConvTranspose3d)
 
 
 def decay_groups(module: nn.Module, params: Iterable[nn.Parameter] | None = None) -> list[dict[str, Any]]:
@@ -40,7 +40,8 @@ class GaiaModule(L.LightningModule):
         sched: schedule factory taking the optimiser, or None for a constant LR.
     """
 
-    def __init__(self, net: Callable[[], nn.Module], optim: Callable[..., torch.optim.Optimizer], sched: Callable | None = None):
+    def __init__(self, net: Callable[[], nn.Module], optim: Callable[..., torch.optim.Optimizer],
+                 sched: Callable | None = None):
         super().__init__()
         self.net_factory = net
         self.optim_factory = optim

@@ -79,7 +79,8 @@ def shipped_tensors(path: Path, component: str, what: str) -> dict[str, torch.Te
         folder = shipped_folder(path)
     except FileNotFoundError:
         raise FileNotFoundError(f"model.init_from='{path}' is neither a file nor a weights folder: give {what}, or "
-                                f"a weights folder with {component}.safetensors (e.g. gaia_app/weights/gaia2)") from None
+                                f"a weights folder with {component}.safetensors "
+                                "(e.g. gaia_app/weights/gaia2)") from None
     weights, config = weight_files(folder, component)
     if read_config(config).get("component") != component:
         raise ValueError(f"model.init_from='{path}': {config.name} is not a {component} component")

@@ -68,8 +68,9 @@ class EvaluationCallback(pl.Callback):
             raise ValueError("callbacks.evaluation.metrics has fdd: set callbacks.evaluation.fdd_checkpoint to a local "
                              "DINO checkpoint (docs/tokenizer.md, 'Local checkpoints')")
         if "lpips" in metrics and not lpips_checkpoint:
-            raise ValueError("callbacks.evaluation.metrics has lpips: set callbacks.evaluation.lpips_checkpoint to local "
-                             "VGG16 weights (and lpips_heads_checkpoint to the LPIPS heads; docs/tokenizer.md)")
+            raise ValueError("callbacks.evaluation.metrics has lpips: set callbacks.evaluation.lpips_checkpoint "
+                             "to local VGG16 weights (and lpips_heads_checkpoint to the LPIPS heads; "
+                             "docs/tokenizer.md)")
         if every_n_val_epochs < 1 or max_batches < 1:
             raise ValueError("callbacks.evaluation: every_n_val_epochs and max_batches must be >= 1")
         self.metrics, self.every_n_val_epochs, self.max_batches = list(metrics), every_n_val_epochs, max_batches
@@ -94,7 +95,8 @@ class EvaluationCallback(pl.Callback):
         if "ssim" in self.metrics:
             state["ssim"] = _Mean(ssim)
         if "lpips" in self.metrics:
-            state["lpips"] = _Mean(load_perceptual(checkpoint=self.lpips_checkpoint, heads_checkpoint=self.lpips_heads_checkpoint,
+            state["lpips"] = _Mean(load_perceptual(checkpoint=self.lpips_checkpoint,
+                                                   heads_checkpoint=self.lpips_heads_checkpoint,
                                                    config_key="callbacks.evaluation.lpips_checkpoint"))
         if "fvmd" in self.metrics:
             state["fvmd"] = FVMD()

@@ -98,8 +98,8 @@ class ImageTokenizerModule(AdversarialModule):
 
     def on_fit_start(self) -> None:
         if self.init_from and self.trainer.ckpt_path is None:
-            load_net_weights(self.tokenizer, self.init_from, "a GAIA-1 tokenizer training checkpoint of the same preset",
-                             component="tokenizer")
+            load_net_weights(self.tokenizer, self.init_from,
+                             "a GAIA-1 tokenizer training checkpoint of the same preset", component="tokenizer")
 
     # ---- losses --------------------------------------------------------------------------
 
@@ -112,7 +112,8 @@ class ImageTokenizerModule(AdversarialModule):
             raise ValueError("model.weights.agents > 0 needs the agents' boxes in the batch: set data.agent_boxes=true "
                              "(clips with agent boxes and camera specs)")
         if agent_box.shape != (image.shape[0], *image.shape[-2:]):
-            raise ValueError(f"batch 'agent_box' {tuple(agent_box.shape)} does not match the images {tuple(image.shape)}")
+            raise ValueError(f"batch 'agent_box' {tuple(agent_box.shape)} does not match the images "
+                             f"{tuple(image.shape)}")
         weight = 1 + self.weights.agents * agent_box[:, None].to(image.dtype)
         return weight / weight.mean()
 
@@ -212,7 +213,8 @@ class ImageTokenizerModule(AdversarialModule):
 
     @torch.no_grad()
     def media(self, batch: dict[str, torch.Tensor]) -> dict[str, Any]:
-        """What the Rerun media callback shows: inputs, reconstructions, token maps (hash and PCA colours, GAIA-1 Fig. 3)."""
+        """What the Rerun media callback shows: inputs, reconstructions, token maps (hash and PCA colours, GAIA-1
+        Fig. 3)."""
         image = batch["image"]
         out = self.tokenizer(image)
         return {

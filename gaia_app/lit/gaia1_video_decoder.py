@@ -115,7 +115,8 @@ class VideoDecoderModule(GaiaModule):
         optimizer = self.optim_factory(decay_groups(self.net))
         if not self.sched_factory:
             return optimizer
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": self.sched_factory(optimizer), "interval": "step"}}
+        return {"optimizer": optimizer,
+                "lr_scheduler": {"scheduler": self.sched_factory(optimizer), "interval": "step"}}
 
     def optimizer_step(self, *args: Any, **kwargs: Any) -> None:
         """Step, then fold the new weights into the EMA (here rather than in on_train_batch_end, so a
@@ -190,8 +191,8 @@ class VideoDecoderModule(GaiaModule):
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
         """Every task on every batch, with the EMA weights, at the slowest rate (the world model's)."""
-        x0 = self.window(batch, step=max(s for s in self.frame_steps if (self.frames - 1) * s < batch["video"].shape[2]),
-                         offset=0)
+        step = max(s for s in self.frame_steps if (self.frames - 1) * s < batch["video"].shape[2])
+        x0 = self.window(batch, step=step, offset=0)
         tokens = self.tokenize(x0)
         losses = {name: self.loss(self.ema_decoder, x0, tokens, make_task(name, self.frames, self.context_frames),
                                   dropout=False) for name in TASKS}

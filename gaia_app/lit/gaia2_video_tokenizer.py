@@ -32,8 +32,10 @@ from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer, VideoTokenizer
 
 STAGES = ("reconstruction", "gan")
 OFF_WARNINGS = {
-    "perceptual": "model.perceptual=none (or model.weights.perceptual=0): the perceptual loss (GAIA-2 report, tokenizer) is off",
-    "dino": "model.dino=none (or model.weights.dino=0): the DINOv2 distillation of the latents (GAIA-2 report, tokenizer) is off",
+    "perceptual": "model.perceptual=none (or model.weights.perceptual=0): the perceptual loss "
+                  "(GAIA-2 report, tokenizer) is off",
+    "dino": "model.dino=none (or model.weights.dino=0): the DINOv2 distillation of the latents "
+            "(GAIA-2 report, tokenizer) is off",
     "gan": "model.stage=gan without a discriminator (model.discriminator=null or model.weights.gan=0): "
            "the decoder is fine-tuned on reconstruction terms only",
 }
@@ -41,7 +43,8 @@ OFF_WARNINGS = {
 
 @dataclass(frozen=True)
 class VideoLossWeights:
-    """λ of each loss term (GAIA-2 report, tokenizer names the terms, not their weights). A zero weight switches a term off."""
+    """λ of each loss term (GAIA-2 report, tokenizer names the terms, not their weights). A zero weight switches a
+    term off."""
 
     l1: float = 1.0
     l2: float = 1.0
@@ -60,7 +63,8 @@ class VideoTokenizerModule(AdversarialModule):
         net, optim, sched: see GaiaModule.
         stage: "reconstruction" (stage 1, everything trains, no GAN) or "gan" (stage 2, decoder only + GAN).
         init_from: checkpoint (or weights folder such as "gaia2") whose tokenizer weights initialise the net when a
-            fresh fit starts (stage 2 starts from stage 1; a fine-tune from the shipped weights); None: random init. Only `net.*` weights are read; the optimiser starts afresh.
+            fresh fit starts (stage 2 starts from stage 1; a fine-tune from the shipped weights); None: random init.
+            Only `net.*` weights are read; the optimiser starts afresh.
         discriminator: PatchDiscriminator3d factory (used in stage "gan" only), or None.
         perceptual: factory of the frozen perceptual network (applied frame by frame), or none.
         dino: factory of the frozen DINOv2 teacher (`load_vision_teacher` partial), or none.
@@ -90,7 +94,8 @@ class VideoTokenizerModule(AdversarialModule):
         self.stage = stage
         self.weights = VideoLossWeights(**dict(weights or {}))
         super().__init__(net, optim, sched, discriminator if stage == "gan" else None,
-                         {"perceptual": perceptual, "dino": dino}, gan_start_step, adaptive_weight_max, gradient_clip_val)
+                         {"perceptual": perceptual, "dino": dino}, gan_start_step, adaptive_weight_max,
+                         gradient_clip_val)
         self.off_warnings = {k: v for k, v in OFF_WARNINGS.items() if k != "gan" or stage == "gan"}
         self.init_from = init_from
         self.sample_posterior = sample_posterior
@@ -119,7 +124,8 @@ class VideoTokenizerModule(AdversarialModule):
         load_tokenizer_weights(self.tokenizer, self.init_from)
 
     def generator_parameters(self) -> Iterable[nn.Parameter]:
-        """Stage 1: the whole tokenizer; stage 2: the decoder only (GAIA-2 report, tokenizer: the GAN fine-tunes the decoder)."""
+        """Stage 1: the whole tokenizer; stage 2: the decoder only (GAIA-2 report, tokenizer: the GAN fine-tunes the
+        decoder)."""
         params = self.net.decoder.parameters() if self.stage == "gan" else self.net.parameters()
         return [p for p in params if p.requires_grad]
 
@@ -164,7 +170,8 @@ class VideoTokenizerModule(AdversarialModule):
         return terms
 
     def latent_terms(self, video: torch.Tensor, out: VideoTokenizerOutput) -> dict[str, torch.Tensor]:
-        """Weighted KL to N(0, I) and DINOv2 distillation of the posterior mean (GAIA-2 report, tokenizer); stage 1 only."""
+        """Weighted KL to N(0, I) and DINOv2 distillation of the posterior mean (GAIA-2 report, tokenizer); stage 1
+        only."""
         if self.stage == "gan":
             return {}
         terms = {"kl": self.weights.kl * out.posterior.kl().mean()}
@@ -197,7 +204,8 @@ class VideoTokenizerModule(AdversarialModule):
         terms = {**reconstruction, **self.latent_terms(video, out)}
         loss = sum(terms.values())
         if with_gan:
-            self.add_gan_term(terms, sum(reconstruction.values()), as_clips(out.reconstruction), self.tokenizer.last_layer)
+            self.add_gan_term(terms, sum(reconstruction.values()), as_clips(out.reconstruction),
+                              self.tokenizer.last_layer)
             loss = loss + terms["gan"]
         terms["loss"] = loss
         return terms
@@ -224,9 +232,11 @@ class VideoTokenizerModule(AdversarialModule):
         frames = "b v T c H W -> (b v T) c H W"
         n = len(video)
         self.log_dict({f"val/{k}": v for k, v in terms.items()}, batch_size=n)
-        self.log("val/psnr", psnr(rearrange(recon, frames), rearrange(video, frames)).mean(), prog_bar=True, batch_size=n)
+        self.log("val/psnr", psnr(rearrange(recon, frames), rearrange(video, frames)).mean(), prog_bar=True,
+                 batch_size=n)
         self.log("val/ssim", ssim(rearrange(recon, frames), rearrange(video, frames)).mean(), batch_size=n)
-        self.log("val/kl_bits_per_pixel", kl_bits_per_pixel(out.posterior, video.shape[2], *video.shape[-2:]), batch_size=n)
+        self.log("val/kl_bits_per_pixel", kl_bits_per_pixel(out.posterior, video.shape[2], *video.shape[-2:]),
+                 batch_size=n)
 
     @torch.no_grad()
     def evaluation_pair(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -244,7 +254,8 @@ class VideoTokenizerModule(AdversarialModule):
         video = batch["video"][:1]
         out = self.tokenizer(video, sample=False)
         stacked = torch.cat([video, out.reconstruction.clamp(-1, 1)], dim=-2)  # input on top: (1, v, T, 3, 2H, W)
-        return {"val/input_over_reconstruction": stacked, "val/latent_channels": latent_mosaic(out.posterior.mean[0, 0])}
+        return {"val/input_over_reconstruction": stacked,
+                "val/latent_channels": latent_mosaic(out.posterior.mean[0, 0])}
 
 
 def as_clips(video: torch.Tensor) -> torch.Tensor:

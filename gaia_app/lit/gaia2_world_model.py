@@ -102,7 +102,8 @@ class LatentWorldModelModule(GaiaModule):
         k = torch.randint(1, t, (b,), device=device)
         return torch.where(torch.rand(b, device=device) < self.context_prob, k, torch.zeros_like(k))
 
-    def flow_loss(self, x: torch.Tensor, taus: torch.Tensor, cond: WorldConditions, noise: torch.Tensor) -> torch.Tensor:
+    def flow_loss(self, x: torch.Tensor, taus: torch.Tensor, cond: WorldConditions,
+                  noise: torch.Tensor) -> torch.Tensor:
         """Mean squared velocity error over the noised steps (taus < 1) of x (b, v, t, C, h, w)."""
         step_tau = taus[:, None, :, None, None, None].to(x.dtype)
         x_tau = step_tau * x + (1 - step_tau) * noise  # flow_matching.noisy_sample per step; τ = 1 leaves x exact

@@ -19,7 +19,8 @@ from torch import nn
 WEATHER = ("clear", "rain", "fog", "snow")
 TIME_OF_DAY = ("day", "dusk", "night")
 TRAFFIC_LIGHT = ("none", "red", "amber", "green")
-ATTRIBUTES: dict[str, tuple[str, ...]] = {"weather": WEATHER, "time_of_day": TIME_OF_DAY, "traffic_light": TRAFFIC_LIGHT}
+ATTRIBUTES: dict[str, tuple[str, ...]] = {"weather": WEATHER, "time_of_day": TIME_OF_DAY,
+                                          "traffic_light": TRAFFIC_LIGHT}
 # curvature is ~100× smaller than speed: the probe predicts it in 1/(100 m) so both losses weigh alike
 CURVATURE_SCALE = 100.0
 
@@ -54,7 +55,8 @@ def cost_volume(a: torch.Tensor, b: torch.Tensor, radius: int = 3) -> torch.Tens
     h, w = grey_a.shape[-2:]
     padded = nn.functional.pad(grey_a, (radius,) * 4, mode="replicate")
     side = 2 * radius + 1
-    costs = torch.cat([(grey_b - padded[:, :, dy : dy + h, dx : dx + w]).abs() for dy in range(side) for dx in range(side)], dim=1)
+    costs = torch.cat([(grey_b - padded[:, :, dy : dy + h, dx : dx + w]).abs()
+                       for dy in range(side) for dx in range(side)], dim=1)
     costs = nn.functional.avg_pool2d(costs, 3, stride=1, padding=1)
     return costs / (costs.mean(dim=1, keepdim=True) + 1e-3)
 
@@ -101,7 +103,8 @@ class InverseDynamicsProbe(nn.Module):
         if self.cameras == 1 and pair.dim() == 5:
             pair = pair.unsqueeze(2)
         if pair.dim() != 6 or pair.shape[2] != self.cameras:
-            raise ValueError(f"InverseDynamicsProbe({self.cameras} camera(s)): expected pairs (b, 2, {self.cameras}, 3, H, W)"
+            raise ValueError(f"InverseDynamicsProbe({self.cameras} camera(s)): "
+                             f"expected pairs (b, 2, {self.cameras}, 3, H, W)"
                              f"{' or (b, 2, 3, H, W)' if self.cameras == 1 else ''}, got {tuple(pair.shape)}")
         views = rearrange(pair, "b t k c h w -> (b k) t c h w")
         encoded = rearrange(self.encoder(self.features(views)), "(b k) d -> b (k d)", k=self.cameras)
@@ -120,7 +123,8 @@ class SceneAttributeProbe(nn.Module):
     def __init__(self, widths: Sequence[int] = (32, 64, 96, 128)):
         super().__init__()
         self.encoder = FrameEncoder(3, widths)
-        self.heads = nn.ModuleDict({name: nn.Linear(self.encoder.dim, len(values)) for name, values in ATTRIBUTES.items()})
+        self.heads = nn.ModuleDict({name: nn.Linear(self.encoder.dim, len(values))
+                                    for name, values in ATTRIBUTES.items()})
 
     def forward(self, frames: torch.Tensor) -> dict[str, torch.Tensor]:
         """frames (b, 3, H, W) → {attribute: (b, classes) logits}."""
@@ -146,13 +150,14 @@ class AgentSegmentationProbe(nn.Module):
         self.down = nn.ModuleList()
         prev = 3
         for width in widths:
-            self.down.append(nn.Sequential(nn.Conv2d(prev, width, 3, stride=2, padding=1), nn.GroupNorm(8, width), nn.SiLU(),
+            self.down.append(nn.Sequential(nn.Conv2d(prev, width, 3, stride=2, padding=1), nn.GroupNorm(8, width),
+                                           nn.SiLU(),
                                            nn.Conv2d(width, width, 3, padding=1), nn.GroupNorm(8, width), nn.SiLU()))
             prev = width
         self.up = nn.ModuleList()
         for skip in (*reversed(widths[:-1]), 3):
-            self.up.append(nn.Sequential(nn.Conv2d(prev + skip, max(skip, 16), 3, padding=1), nn.GroupNorm(8, max(skip, 16)),
-                                         nn.SiLU()))
+            self.up.append(nn.Sequential(nn.Conv2d(prev + skip, max(skip, 16), 3, padding=1),
+                                         nn.GroupNorm(8, max(skip, 16)), nn.SiLU()))
             prev = max(skip, 16)
         self.head = nn.Conv2d(prev, 1, 1)
 

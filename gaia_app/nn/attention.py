@@ -68,7 +68,8 @@ class KVCache:
             live = end - begin
             size = max(keys.shape[2], live + s)
             keys = torch.cat([keys[:, :, begin:end], keys.new_empty(*keys.shape[:2], size - live, keys.shape[3])], 2)
-            values = torch.cat([values[:, :, begin:end], values.new_empty(*values.shape[:2], size - live, values.shape[3])], 2)
+            values = torch.cat([values[:, :, begin:end],
+                                values.new_empty(*values.shape[:2], size - live, values.shape[3])], 2)
             self.buffers[layer], begin, end = (keys, values), 0, live
         keys[:, :, end : end + s] = k
         values[:, :, end : end + s] = v

@@ -27,7 +27,8 @@ def sincos_1d(positions: torch.Tensor, dim: int, base: float = 10_000.0) -> torc
     """positions (p,) float → (p, dim) [sin | cos] features at geometric frequencies (Vaswani et al.)."""
     if dim % 2:
         raise ValueError(f"sincos_1d: dim={dim} must be even")
-    freqs = torch.exp(-math.log(base) * torch.arange(dim // 2, device=positions.device, dtype=torch.float32) / (dim // 2))
+    freqs = torch.exp(-math.log(base) * torch.arange(dim // 2, device=positions.device, dtype=torch.float32)
+                      / (dim // 2))
     angles = positions.float()[:, None] * freqs[None, :]
     return torch.cat([angles.sin(), angles.cos()], dim=-1)
 
@@ -141,7 +142,8 @@ class CrossAttention(nn.Module):
         q = rearrange(self.to_q(x), "b n (h e) -> b h n e", h=self.heads)
         k, v = rearrange(self.to_kv(context), "b m (two h e) -> two b h m e", two=2, h=self.heads)
         attn_mask = None if mask is None else mask[:, None, None, :]
-        out = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask, dropout_p=self.dropout if self.training else 0.0)
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask,
+                                             dropout_p=self.dropout if self.training else 0.0)
         return self.to_out(rearrange(out, "b h n e -> b n (h e)"))
 
 

@@ -16,7 +16,8 @@ import torch
 from torch import nn
 
 # conv widths of VGG configuration "D" (Simonyan & Zisserman 2015); "M" = 2×2 max-pool
-VGG16_LAYOUT: tuple[int | str, ...] = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M")
+VGG16_LAYOUT: tuple[int | str, ...] = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M",
+                                       512, 512, 512, "M")
 # `features` indices of the ReLUs after conv1_2, conv2_2, conv3_3, conv4_3, conv5_3: the LPIPS taps
 LPIPS_TAPS: tuple[int, ...] = (3, 8, 15, 22, 29)
 

@@ -5,8 +5,9 @@ inference only the nets matter (the tokenizer without its discriminator, the wor
 the video decoder's EMA weights), so they are built from their own sub-configs and filled from the checkpoint's
 tensors (read weights-only, gaia_app/utils/checkpoint_io.py). Every `_target_` of the whole config must name a
 path in the allow-list (gaia_app/utils/targets.py), and those of the nets built here must resolve to nets and
-encoders of gaia_app (as in shipped weights): the training objective's module is named, never imported. No objective, optimiser or frozen loss network is built, and
-nothing of the checkpoint is executed. `generate.py mode=export` writes the same nets as shipped weights.
+encoders of gaia_app (as in shipped weights): the training objective's module is named, never imported. No
+objective, optimiser or frozen loss network is built, and nothing of the checkpoint is executed.
+`generate.py mode=export` writes the same nets as shipped weights.
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ from gaia_app.utils.untrusted import check_finite
 # component → (the LightningModule its checkpoint comes from, {net key of the model config: state-dict prefix})
 COMPONENTS = {
     "tokenizer": ("gaia_app.lit.gaia1_tokenizer.ImageTokenizerModule", {"net": "net."}),
-    "world_model": ("gaia_app.lit.gaia1_world_model.WorldModelModule", {"net": "net.", "text_encoder": "text_encoder."}),
+    "world_model": ("gaia_app.lit.gaia1_world_model.WorldModelModule",
+                    {"net": "net.", "text_encoder": "text_encoder."}),
     # generation samples with the EMA weights (GAIA-1 §4.3); the EMA copy has the net's own names
     "video_decoder": ("gaia_app.lit.gaia1_video_decoder.VideoDecoderModule", {"net": "ema.module."}),
     # GAIA-2: the video tokenizer without its discriminator, the latent world model with its caption encoder

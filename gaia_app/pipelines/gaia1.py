@@ -103,8 +103,8 @@ class Gaia1Pipeline:
         decoder_steps: steps of the decoder run's own sampler (DDIM, §5.2: 50), None for its default.
         decoder_blend: eq. 4 image/video blend of the decoder's steps (§5.2: p = 0.25, w = 0.5), None for none.
         decoder_sampler: "ddim" (the decoder run's own sampler, DDIM in every preset; also for None) or
-            "one_step_mean" (the conditional mean over decoder_steps noise draws, the fast option; `make_decoder_sampler`)
-            or "antithetic_mean" (that mean over pairs of opposite draws).
+            "one_step_mean" (the conditional mean over decoder_steps noise draws, the fast option;
+            `make_decoder_sampler`) or "antithetic_mean" (that mean over pairs of opposite draws).
         kwargs: the constructor's sampler, guidance, upsample and rate.
         """
         from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
@@ -144,9 +144,10 @@ class Gaia1Pipeline:
             schedule = CosineNoiseSchedule(int(info["timesteps"]))
             sampler = make_decoder_sampler(decoder_sampler or str(info.get("sampler", "ddim")), schedule,
                                            decoder_steps or int(info["steps"]))
-            video = VideoDecodingPipeline(nets["net"], schedule, sampler, int(info["frames"]), int(info["context_frames"]),
-                                          blend=decoder_blend, progress=True,
-                                          render_tokens=_renderer(tokenizer["net"]) if nets["net"].render_tokens else None)
+            video = VideoDecodingPipeline(nets["net"], schedule, sampler, int(info["frames"]),
+                                          int(info["context_frames"]), blend=decoder_blend, progress=True,
+                                          render_tokens=(_renderer(tokenizer["net"]) if nets["net"].render_tokens
+                                                         else None))
         return cls(tokenizer["net"], world_model["net"], tuple(tokenizer_info["image_size"]),
                    world_model.get("text_encoder"), decoder=video, upsample=upsample, rate=float(world_info["rate"]),
                    **kwargs)
@@ -155,7 +156,8 @@ class Gaia1Pipeline:
         """Tokenizer, world model and decoder must agree on the token grid and the vocabulary."""
         h, w = self.token_grid
         if self.world_model.n != h * w or self.world_model.vocab_size != self.tokenizer.codebook_size:
-            raise ValueError(f"world model expects {self.world_model.n} tokens per frame from {self.world_model.vocab_size} "
+            raise ValueError(f"world model expects {self.world_model.n} tokens per frame "
+                             f"from {self.world_model.vocab_size} "
                              f"codes; the tokenizer makes {h}×{w} = {h * w} at {self.image_size} from "
                              f"{self.tokenizer.codebook_size} codes")
         if self.decoder is not None:
@@ -241,7 +243,8 @@ class Gaia1Pipeline:
         return _renderer(self.tokenizer)(tokens.to(self.device)).cpu()
 
     @torch.no_grad()
-    def render(self, tokens: torch.Tensor, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def render(self, tokens: torch.Tensor,
+               generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """tokens (k, t, h, w) → frames at the world model's rate (k, t, 3, H, W) and the output video."""
         if self.decoder is None:
             frames = self.tokenizer_frames(tokens)
@@ -279,7 +282,8 @@ def make_decoder_sampler(kind: str, schedule: CosineNoiseSchedule, steps: int,
     raise ValueError(f"decoder_sampler: expected one of {DECODER_SAMPLERS}, got {kind!r}")
 
 
-def decoder_sampling(config: dict, steps: int | None, kind: str = "ddim") -> tuple[CosineNoiseSchedule, Callable, int, int]:
+def decoder_sampling(config: dict, steps: int | None,
+                     kind: str = "ddim") -> tuple[CosineNoiseSchedule, Callable, int, int]:
     """(noise schedule, sampler, frames T', context frames) of a video decoder's stored config (model.schedule,
     model.sampler with `steps` if given, model.frames, model.context_frames), as VideoDecoderModule builds them;
     kind "one_step_mean" replaces the sampler (`make_decoder_sampler`, `steps` draws, 8 if None)."""

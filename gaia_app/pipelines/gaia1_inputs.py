@@ -121,7 +121,8 @@ def command_series(value: Any, name: str, presets: dict[str, float], frames: int
     try:
         values = np.atleast_1d(np.asarray(value, dtype=np.float64))
     except (TypeError, ValueError):
-        raise ValueError(f"{name}={value!r}: expected one of {sorted(presets)}, a number or a list of {frames}") from None
+        raise ValueError(f"{name}={value!r}: expected one of {sorted(presets)}, "
+                         f"a number or a list of {frames}") from None
     if values.ndim != 1 or len(values) not in (1, frames):
         raise ValueError(f"{name}: {len(values)} values for {frames} future steps; give one per step, one number, "
                          f"or a preset of {sorted(presets)}")
@@ -135,7 +136,8 @@ def command_series(value: Any, name: str, presets: dict[str, float], frames: int
 def future_actions(speed: Any, curvature: Any, frames: int, rate: float, start_speed: float) -> np.ndarray:
     """(f, 2) commanded (speed m/s, curvature 1/m) for the future steps; presets start from `start_speed`."""
     speed_cmd = command_series(speed if speed is not None else "keep", "speed", SPEED_PRESETS, frames)
-    curv_cmd = command_series(curvature if curvature is not None else "straight", "curvature", CURVATURE_PRESETS, frames)
+    curv_cmd = command_series(curvature if curvature is not None else "straight", "curvature", CURVATURE_PRESETS,
+                              frames)
     if isinstance(speed_cmd, str):
         elapsed = np.arange(1, frames + 1) / rate
         speed_cmd = np.clip(start_speed + SPEED_PRESETS[speed_cmd] * elapsed, 0.0, MAX_SPEED)

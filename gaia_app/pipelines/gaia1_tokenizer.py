@@ -52,7 +52,8 @@ class TokenizerReconstructionPipeline:
             recon.append(self.tokenizer.decode(z).clamp(-1, 1).cpu())
         tokens_t, recon_t = torch.cat(tokens), torch.cat(recon)
         unfold = lambda x: rearrange(x, "(v t) ... -> v t ...", v=v)  # noqa: E731
-        return ReconstructionOutput(unfold(tokens_t), unfold(recon_t), unfold(psnr(recon_t, frames)), unfold(ssim(recon_t, frames)))
+        return ReconstructionOutput(unfold(tokens_t), unfold(recon_t), unfold(psnr(recon_t, frames)),
+                                    unfold(ssim(recon_t, frames)))
 
 
 def camera_names(clip: Clip) -> list[str]:
@@ -101,7 +102,8 @@ class TokenCachePipeline:
         frames = rearrange(torch.from_numpy(clip.frames), "v t c h w -> (v t) c h w")
         device = next(self.tokenizer.parameters()).device
         # uint8 → float per chunk: a long clip never sits in memory as float
-        tokens = torch.cat([self.tokenizer.encode(to_float(chunk).to(device)).cpu() for chunk in frames.split(self.batch_size)])
+        tokens = torch.cat([self.tokenizer.encode(to_float(chunk).to(device)).cpu()
+                            for chunk in frames.split(self.batch_size)])
         tokens = rearrange(tokens, "(v t) h w -> v t h w", v=clip.num_views).numpy()
         return TokenizedClip([TokenSegment(name, tokens[v], clip.actions, clip.timestamps, clip.text)
                               for v, name in enumerate(segment_names(clip))])

@@ -165,7 +165,8 @@ class VideoDecodingPipeline:
                                                  generator)
         return out
 
-    def __call__(self, tokens: torch.Tensor, upsample: int = 2, generator: torch.Generator | None = None) -> DecodedVideo:
+    def __call__(self, tokens: torch.Tensor, upsample: int = 2,
+                 generator: torch.Generator | None = None) -> DecodedVideo:
         """tokens (b, N, h, w) → DecodedVideo; `upsample` doublings of the frame rate (0, 1 or 2)."""
         if upsample not in (0, 1, 2):
             raise ValueError(f"upsample must be 0, 1 or 2 doublings (6.25 → 12.5 → 25 Hz), got {upsample}")

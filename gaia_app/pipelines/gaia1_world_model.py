@@ -59,7 +59,8 @@ class WorldModelRolloutPipeline:
         action): a window cut from a longer rollout is then conditioned exactly as in that rollout.
         """
         steps = lead + context.shape[1] + frames
-        context, text, actions, negative_text = (repeat_futures(x, num_futures) for x in (context, text, actions, negative_text))
+        context, text, actions, negative_text = (repeat_futures(x, num_futures)
+                                                 for x in (context, text, actions, negative_text))
         cond, uncond = self.streams(context.shape[0], steps, text, actions, negative_text, lead)
         groups = None if noise_groups is None else future_groups(noise_groups, num_futures)
         tokens = self.sampler(self.net, context, cond, uncond, frames, self.rollout_guidance(text), generator, groups)

@@ -53,7 +53,8 @@ class Guidance:
             raise ValueError(f"guidance.spatial_pass={self.spatial_pass!r}: expected one of {SPATIAL_PASSES}")
         lo, hi = (float(x) for x in self.interval) if len(self.interval) == 2 else (None, None)
         if lo is None or not 0.0 <= lo < hi <= 1.0:
-            raise ValueError(f"guidance.interval={list(self.interval)}: expected [lo, hi] with 0 ≤ lo < hi ≤ 1 (flow time)")
+            raise ValueError(f"guidance.interval={list(self.interval)}: expected [lo, hi] with 0 ≤ lo < hi ≤ 1 "
+                             "(flow time)")
         self.interval = (lo, hi)
 
     def applies(self, taus: torch.Tensor) -> torch.Tensor:
@@ -127,7 +128,8 @@ class LatentWorldModelPipeline:
         guided = self.guided(x, taus, cond, conditional)
         return torch.where(inside[:, None, :, None, None, None], guided, conditional)
 
-    def guided(self, x: torch.Tensor, taus: torch.Tensor, cond: WorldConditions, conditional: torch.Tensor) -> torch.Tensor:
+    def guided(self, x: torch.Tensor, taus: torch.Tensor, cond: WorldConditions,
+               conditional: torch.Tensor) -> torch.Tensor:
         """The guided velocity (b, v, t, C, h, w) from the conditional one: plain CFG, or spatially selective CFG."""
         b, v, t, _, h, w = x.shape
         p, g = self.model.patch, self.guidance
@@ -228,7 +230,8 @@ class LatentWorldModelPipeline:
         return self.integrate(tau0 * latents + (1 - tau0) * noise, cond, start=start)
 
     @staticmethod
-    def noise(shape: Sequence[int], generator: torch.Generator | None, device: torch.device | str = "cpu") -> torch.Tensor:
+    def noise(shape: Sequence[int], generator: torch.Generator | None,
+              device: torch.device | str = "cpu") -> torch.Tensor:
         return torch.randn(*shape, generator=generator, device=device)
 
 

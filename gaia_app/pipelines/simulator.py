@@ -65,8 +65,8 @@ class DrivingSimulator(gymnasium.Env):
     """Closed-loop simulator (module docstring).
 
     Args:
-        pipeline: a Gaia1Pipeline (e.g. `Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=False)`); its token
-            sampler is used as it is, and its guidance unless `reset` sets the episode's.
+        pipeline: a Gaia1Pipeline (e.g. `Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=False)`);
+            its token sampler is used as it is, and its guidance unless `reset` sets the episode's.
         context_frames: real frames that start an episode (at the world model's rate).
         max_steps: steps before an episode is truncated.
         observation: "tokenizer" (each step's frame decoded on its own by the tokenizer, (H, W, 3)) or
@@ -178,7 +178,8 @@ class DrivingSimulator(gymnasium.Env):
         actions = self.episodes.actions
         return {"step": self.steps, "time_s": self.steps / self.pipeline.rate,
                 "action": actions[-1][0].tolist() if actions else None,
-                "tokens": self.tokens[-1].cpu().numpy().copy() if self.tokens is not None and len(self.tokens) else None}
+                "tokens": (self.tokens[-1].cpu().numpy().copy() if self.tokens is not None and len(self.tokens)
+                           else None)}
 
 
 def load_pipeline(weights: str | Path = "gaia1", device: str = "cpu", video_decoder: bool = False) -> Gaia1Pipeline:

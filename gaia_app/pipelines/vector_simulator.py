@@ -82,8 +82,9 @@ class VectorDrivingSimulator(VectorEnv):
     def reset(self, *, seed: int | list[int | None] | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         """Start N episodes. seed: an integer s (episode i gets s + i), N seeds (None entries drawn from the env's
-        generator, which the first seed seeds) or None (all drawn); options: DrivingSimulator.reset's, with `index` one clip index for all or
-        N of them. → observations (N, H, W, 3) uint8 and infos (Gymnasium's vector layout)."""
+        generator, which the first seed seeds) or None (all drawn); options: DrivingSimulator.reset's, with `index`
+        one clip index for all or N of them. → observations (N, H, W, 3) uint8 and infos (Gymnasium's vector
+        layout)."""
         seeds, self.settings = self.row_seeds(seed), checked_options(options, self.num_envs)
         super().reset(seed=seeds[0])  # the env's own generator (drawn seeds, autoresets) follows the first seed
         return self.start([int(self.np_random.integers(2**62)) if s is None else s for s in seeds])

@@ -255,7 +255,8 @@ def error_row(probe, video: torch.Tensor, commanded: torch.Tensor, start: int, c
         "sd": float(spread[k]), "commanded": float(commanded_difference[:, k].mean()),
         "per_context": realised[:, k].tolist()}
         for k, name in enumerate(CONTRASTS)}
-    row |= {name: mean_interval(per_context[:, k].tolist()).as_dict() for k, name in enumerate(("speed_mae", "curvature_mae"))}
+    row |= {name: mean_interval(per_context[:, k].tolist()).as_dict()
+            for k, name in enumerate(("speed_mae", "curvature_mae"))}
     row["per_command"] = errors.mean(dim=1).tolist()
     row["draws"] = draws
     return row
@@ -289,7 +290,8 @@ def action_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: tor
         "reference": repeat(contexts.frames),
     }
     rows = {name: error_row(probe, video, commanded, t0 + 1, len(commands)) for name, video in videos.items()}
-    contrasted = {metric: ["/".join(commands[high]), "/".join(commands[low])] for metric, (high, low) in zip(CONTRASTS, pairs)}
+    contrasted = {metric: ["/".join(commands[high]), "/".join(commands[low])]
+                  for metric, (high, low) in zip(CONTRASTS, pairs)}
     per_command = (len(commands), n)
     discrimination = command_discrimination(pipeline, real_tokens.unflatten(0, per_command),
                                             commanded.unflatten(0, per_command), t0, pairs)
@@ -332,7 +334,8 @@ def text_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: torch
     repeats, floor_repeats = c.text_repeats, c.floor_repeats
     if repeats < 1 or floor_repeats < 1:
         raise ValueError(f"controllability.text_repeats={repeats}, floor_repeats={floor_repeats}: expected ≥ 1 each")
-    floor = torch.cat([rollout_frames(pipeline, None, frames, min(repeats, floor_repeats - start), None, None, generator)
+    floor = torch.cat([rollout_frames(pipeline, None, frames, min(repeats, floor_repeats - start), None, None,
+                                      generator)
                        for start in range(0, floor_repeats, repeats)])
     real = probe_clips(world_clips(cfg.context.seed, c.real_clips, height, width, frames, rate, start=c.contexts,
                                    balanced=True), rate, frames)
@@ -348,7 +351,8 @@ def text_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: torch
         rows["model"][key] = share_row(probe, model, attr, index)
         rows["floor"][key] = share_row(probe, floor, attr, index)
     chance = {f"{attr}={value}": 1.0 / len(ATTRIBUTES[attr]) for attr, value in targets}
-    checks = {key: {"probe_reads_it": bool(row and row["frame_accuracy"] >= 0.9)} for key, row in rows["ceiling"].items()}
+    checks = {key: {"probe_reads_it": bool(row and row["frame_accuracy"] >= 0.9)}
+              for key, row in rows["ceiling"].items()}
     return {"targets": [f"{a}={v}" for a, v in targets], "rollouts_per_prompt": repeats,
             "floor_rollouts": floor_repeats, "chance": chance,
             "rows": rows, "checks": checks}
@@ -376,7 +380,8 @@ def markdown(results: dict[str, Any]) -> str:
              *action_rows_markdown(actions, ACTION_ROWS), "", *realised_rows_markdown(actions),
              *discrimination_markdown(actions)]
     lines += ["", f"Text adherence: share of rollouts ({text['rollouts_per_prompt']} per prompt, generated from the "
-              f"prompt alone; {text.get('floor_rollouts', text['rollouts_per_prompt'])} unprompted rollouts for the floor, "
+              f"prompt alone; {text.get('floor_rollouts', text['rollouts_per_prompt'])} unprompted rollouts for the "
+              "floor, "
               "shared by every prompt) whose frames mostly read the prompted value; [95 % Wilson interval].", "",
               "| text adherence | " + " | ".join(text["targets"]) + " |", "|---" * (len(text["targets"]) + 1) + "|"]
     for key, name in TEXT_ROWS.items():
@@ -390,8 +395,8 @@ def markdown(results: dict[str, Any]) -> str:
 
 def action_rows_markdown(actions: dict[str, Any], names: dict[str, str]) -> list[str]:
     """The action table's header, one line per row of `names` (key → label), its targets and probe checks."""
-    lines = ["| action adherence | speed contrast error (m/s) ↓ | curvature contrast error (1/m) ↓ | speed MAE (m/s) ↓ | "
-             "curvature MAE (1/m) ↓ |", "|---|---|---|---|---|"]
+    lines = ["| action adherence | speed contrast error (m/s) ↓ | curvature contrast error (1/m) ↓ | "
+             "speed MAE (m/s) ↓ | curvature MAE (1/m) ↓ |", "|---|---|---|---|---|"]
     for key, name in names.items():
         row = actions["rows"][key]
         lines.append(f"| {name} | {fmt(row['speed_contrast'], 3)} | {fmt(row['curvature_contrast'], 4)} | "
@@ -413,7 +418,8 @@ def realised_rows_markdown(actions: dict[str, Any]) -> list[str]:
     if any(row is None for row in rows.values()):  # results written before the diagnostic existed
         return []
     commanded = rows["ceiling"]
-    header = (f"| realised difference (diagnostic) | speed (m/s), commanded {commanded['speed_contrast']['commanded']:.3f}"
+    header = (f"| realised difference (diagnostic) | speed (m/s), commanded "
+              f"{commanded['speed_contrast']['commanded']:.3f}"
               f" | curvature (1/m), commanded {commanded['curvature_contrast']['commanded']:.4f} |")
     lines = [header, "|---|---|---|"]
     for key, name in REALISED_ROWS.items():

@@ -2,7 +2,8 @@
 
     python -m gaia_app.tasks.drive --weights gaia1 --seconds 10 --target-speed 12 --out outputs/drive
     python -m gaia_app.tasks.drive --viewer         # also stream live to a Rerun viewer listening on 127.0.0.1
-    python -m gaia_app.tasks.drive --screenshot docs/gallery/simulator_live.png   # stream to a headless viewer, capture it
+    # stream to a headless viewer, capture it:
+    python -m gaia_app.tasks.drive --screenshot docs/gallery/simulator_live.png
 
 The controller sees only the generated frames. After every step the shipped inverse-dynamics probe (the one the
 controllability table measures with) reads the ego speed from the last pair of frames. Its readings are noisy

@@ -1,6 +1,7 @@
 """Every speed controller of the closed loop on several sampler seeds, side by side (docs/simulator.md).
 
-    python -m gaia_app.tasks.drive --weights gaia1 --seconds 10 --target-speed 12 --seeds 101-116 --out outputs/drive_seeds
+    python -m gaia_app.tasks.drive --weights gaia1 --seconds 10 --target-speed 12 --seeds 101-116 \\
+        --out outputs/drive_seeds
 
 For each seed, one episode per controller of `drive.CONTROLLERS` from the same context (clip 0 of world 1000) and
 the same sampler seed, so the controllers are compared on paired episodes. Scores over the last 5 s of each

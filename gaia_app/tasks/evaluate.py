@@ -14,8 +14,8 @@ generated frame against the real one, fvmd
 between the sets of real and generated clips (last context frame + future), fid / fdd over future frames
 (need `evaluate.fid_checkpoint` / `evaluate.fdd_checkpoint`), agent_iou of a segmentation probe's agent masks on
 generated frames with the real frames' agent masks (the probe trains in the run on `evaluate.probe_clips` clips of
-the world `evaluate.probe_seed`; its IoU on the real frames themselves is reported too). Writes evaluation.json and the table evaluation.md
-into the run dir.
+the world `evaluate.probe_seed`; its IoU on the real frames themselves is reported too). Writes evaluation.json and
+the table evaluation.md into the run dir.
 """
 
 from __future__ import annotations
@@ -34,9 +34,9 @@ from gaia_app.eval.controllability import probe_clips
 from gaia_app.eval.feature_distance import fdd, fid
 from gaia_app.eval.fvmd import FVMD
 from gaia_app.eval.metrics import psnr, ssim
-from gaia_app.tasks.controllability import rollout_frames, world_samples
 from gaia_app.models.probes import AgentSegmentationProbe
 from gaia_app.pipelines.gaia1_inputs import future_frames
+from gaia_app.tasks.controllability import rollout_frames, world_samples
 from gaia_app.tasks.rollout import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 
@@ -82,8 +82,8 @@ def score(metrics: Sequence[str], real: torch.Tensor, candidate: torch.Tensor, t
           networks: dict[str, Any] | None = None,
           agents: tuple[AgentSegmentationProbe, torch.Tensor] | None = None) -> dict[str, float]:
     """Metrics of candidate futures against real ones; both (b, t0 + f, 3, H, W), scored from frame t0 − 1 on.
-    networks: `feature_metrics` (lpips distance, fid / fdd metrics whose networks each row reuses); agents: the agent probe and the real clips'
-    agent masks (b, t0 + f, H, W), for agent_iou."""
+    networks: `feature_metrics` (lpips distance, fid / fdd metrics whose networks each row reuses); agents: the agent
+    probe and the real clips' agent masks (b, t0 + f, H, W), for agent_iou."""
     networks, out = networks or {}, {}
     real_future, future = real[:, t0:].flatten(0, 1), candidate[:, t0:].flatten(0, 1)
     if "psnr" in metrics:
@@ -117,9 +117,11 @@ def markdown(results: dict[str, Any]) -> str:
     arrows = {"psnr": "↑", "ssim": "↑", "lpips": "↓", "fvmd": "↓", "fid": "↓", "fdd": "↓", "agent_iou": "↑"}
     lines = ["| rollouts vs real continuations | " + " | ".join(f"{n} {arrows[n]}" for n in names) + " |",
              "|---" * (len(names) + 1) + "|"]
-    lines += [f"| {row} | " + " | ".join(f"{values[n]:.3f}" for n in names) + " |" for row, values in results["rows"].items()]
+    lines += [f"| {row} | " + " | ".join(f"{values[n]:.3f}" for n in names) + " |"
+              for row, values in results["rows"].items()]
     if "agent_probe" in results:
-        lines += ["", f"agent probe IoU on the real future frames themselves: {results['agent_probe']['iou_on_real_future']:.3f}"]
+        lines += ["", "agent probe IoU on the real future frames themselves: "
+                  f"{results['agent_probe']['iou_on_real_future']:.3f}"]
     return "\n".join(lines) + "\n"
 
 

@@ -5,8 +5,8 @@
 
 writes tokenizer.{safetensors,yaml}, world_model.{safetensors,yaml} and probes/ (the controllability probes the
 weights were measured with, so `weights=` runs never retrain them); with decoder_ckpt= also
-video_decoder.{safetensors,yaml} (its EMA weights), which `weights=` runs then decode with. Only the nets inference needs are kept: the
-tokenizer without its discriminator, the world model with its text encoder.
+video_decoder.{safetensors,yaml} (its EMA weights), which `weights=` runs then decode with. Only the nets inference
+needs are kept: the tokenizer without its discriminator, the world model with its text encoder.
 
     python generate.py mode=export weights=gaia1 world_model_ckpt=<world model last.ckpt> out_dir=my_weights
 
@@ -35,7 +35,8 @@ from gaia_app.utils.checkpoint_io import read_checkpoint
 from gaia_app.utils.shipped import export_component, read_config, shipped_folder, weight_files
 
 
-def export_sources(cfg: DictConfig, mode: str, tokenizer: str, tokenizer_hint: str, world_model_hint: str) -> Path | None:
+def export_sources(cfg: DictConfig, mode: str, tokenizer: str, tokenizer_hint: str,
+                   world_model_hint: str) -> Path | None:
     """The weights folder `cfg.weights` that gives the tokenizer (None without one), after checking that exactly
     one of it and `cfg.tokenizer_ckpt` is set, and that `cfg.world_model_ckpt` is; errors name `mode` and the key."""
     source = shipped_folder(cfg.weights) if cfg.get("weights") else None

@@ -141,7 +141,8 @@ def noise_draws(cfg: DictConfig) -> int:
 
 
 def resimulated(cfg: DictConfig, index: int, actions: np.ndarray) -> Clip:
-    """Scene `index` of the world `context.seed` (every camera of the rig) driven open-loop by per-frame `actions` (f, 2)."""
+    """Scene `index` of the world `context.seed` (every camera of the rig) driven open-loop by per-frame `actions`
+    (f, 2)."""
     world = rig_world(cfg, cfg.context.seed, index + 1, len(actions), scenario=Scenario(ego_actions=actions))
     return world[index]
 
@@ -168,26 +169,30 @@ def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Sy
         actions = commanded[k].numpy()
         ceiling = resimulated(cfg, i, actions.astype(np.float64))
         videos["ceiling"].append(views_of(to_float(torch.from_numpy(ceiling.frames)), views))
-        videos["tokenized"].append(views_of(pipeline.decode(pipeline.window(pipeline.encode(ceiling), 0, g.steps)[0])[0].cpu(), views))
+        tokenized = pipeline.decode(pipeline.window(pipeline.encode(ceiling), 0, g.steps)[0])[0].cpu()
+        videos["tokenized"].append(views_of(tokenized, views))
         target = with_labels(clip, first, actions[first:])
         context, _ = pipeline.window(target, 0, g.context_steps)
         _, cond = pipeline.window(target, 0, g.steps)
         cond = cond.without("agents") if g.evaluate.action_agents == "dropped" else cond
         for seed in noise[i]:
             videos["model"].append(continuation(pipeline, context, cond, g.steps - g.context_steps, seed, views))
-            if k < n:  # the floor ignores the command: one continuation per scene and draw, scored against every command
-                videos["floor"].append(continuation(pipeline, context, cond.without("action"), g.steps - g.context_steps,
-                                                    seed, views))
+            # the floor ignores the command: one continuation per scene and draw, scored against every command
+            if k < n:
+                videos["floor"].append(continuation(pipeline, context, cond.without("action"),
+                                                    g.steps - g.context_steps, seed, views))
     videos["floor"] = videos["floor"] * len(commands)
     videos["reference"] = list(contexts.frames) * len(commands)
     # scored: pairs (i − stride, i) of generated frames only, i = first + stride … f − 1
     rows = {name: error_row(probe, torch.stack(video), commanded, first + stride, len(commands), stride,
                             draws if name in SAMPLED else 1)
             for name, video in videos.items()}
-    contrasted = {metric: ["/".join(commands[high]), "/".join(commands[low])] for metric, (high, low) in zip(CONTRASTS, pairs)}
+    contrasted = {metric: ["/".join(commands[high]), "/".join(commands[low])]
+                  for metric, (high, low) in zip(CONTRASTS, pairs)}
     return {"scenes": n, "commands": [list(cmd) for cmd in commands], "agents": g.evaluate.action_agents,
-            "context_frames": first, "probe_stride": stride, "noise_draws": draws, "probe_cameras": g.evaluate.probe_cameras,
-            "scored_steps": frames - first - stride, "rows": rows, "contrasts": contrasted, "checks": action_checks(rows)}
+            "context_frames": first, "probe_stride": stride, "noise_draws": draws,
+            "probe_cameras": g.evaluate.probe_cameras, "scored_steps": frames - first - stride, "rows": rows,
+            "contrasts": contrasted, "checks": action_checks(rows)}
 
 
 def continuation(pipeline: Gaia2Pipeline, context: torch.Tensor, cond: Any, new_steps: int, seed: int,
@@ -204,8 +209,10 @@ def markdown(actions: dict[str, Any]) -> list[str]:
     cameras = "every camera of the rig" if actions.get("probe_cameras") == "rig" else "front camera"
     return [f"Action adherence ({cameras}, {actions['scenes']} held-out scenes × {len(actions['commands'])} commands "
              f"({', '.join('/'.join(c) for c in actions['commands'])}), {actions['context_frames']} context frames, "
-             f"{actions['scored_steps']} scored frame pairs {actions.get('probe_stride', 1)} frame(s) apart each, agent boxes {actions['agents']}, "
-             f"{actions.get('noise_draws', 1)} sampled future(s) per scene and command (a scene's score: their mean); ± 95 % interval over scenes. Contrast error: |probed "
+             f"{actions['scored_steps']} scored frame pairs {actions.get('probe_stride', 1)} frame(s) apart each, "
+             f"agent boxes {actions['agents']}, "
+             f"{actions.get('noise_draws', 1)} sampled future(s) per scene and command (a scene's score: their mean); "
+             "± 95 % interval over scenes. Contrast error: |probed "
              f"difference − commanded difference| of the horizon-mean speed ({speed}) and curvature ({curvature}) of "
              "two futures of one scene; MAE: mean |probed − commanded| (diagnostic)", "",
              *action_rows_markdown(actions, ROWS)]

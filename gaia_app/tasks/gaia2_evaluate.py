@@ -75,11 +75,13 @@ def rig_samples(cfg: DictConfig, seed: int, count: int, frames: int) -> list[Syn
 def agent_masks(sample: SyntheticSample, frames: int) -> torch.Tensor:
     """(v, T, H, W) bool: any agent visible at each pixel of every camera."""
     views = range(sample.clip.num_views)
-    return torch.from_numpy(np.stack([np.stack([sample.instance_ids(t, v) >= 0 for t in range(frames)]) for v in views]))
+    return torch.from_numpy(np.stack([np.stack([sample.instance_ids(t, v) >= 0 for t in range(frames)])
+                                      for v in views]))
 
 
 def box_masks(cond: Any, frames: int, temporal: int) -> torch.Tensor:
-    """(v, T, H, W) bool: the conditioning agent boxes projected into every camera (a latent step's boxes on its frames)."""
+    """(v, T, H, W) bool: the conditioning agent boxes projected into every camera (a latent step's boxes on its
+    frames)."""
     height, width = cond.image_size
     boxes, _, visible = project_boxes(cond.agents, cond.intrinsics, cond.extrinsics, cond.image_size)  # (1, t, v, N, 4)
     ys = (torch.arange(height) + 0.5) / height
@@ -111,7 +113,8 @@ def scene_overlaps(predicted: list[torch.Tensor], masks: list[torch.Tensor],
                    regions: list[torch.Tensor] | None = None) -> tuple[list[int], list[int]]:
     """Per scene, the (intersection, union) pixel counts of the probe's masks predicted on its video with its masks
     (v, T, H, W), within its region (v, T, H, W) where `regions` is given."""
-    counts = [overlap_counts(p, mask, region) for p, mask, region in zip(predicted, masks, regions or [None] * len(masks))]
+    counts = [overlap_counts(p, mask, region)
+              for p, mask, region in zip(predicted, masks, regions or [None] * len(masks))]
     return [i for i, _ in counts], [u for _, u in counts]
 
 
@@ -125,7 +128,8 @@ def row_overlaps(probe: Any, videos: list[torch.Tensor], truth: list[torch.Tenso
     return {"iou_agent_masks": scene_overlaps(predicted, truth),
             "iou_conditioning_boxes": scene_overlaps(predicted, boxes),
             "iou_inside_boxes": scene_overlaps(predicted, truth, boxes),
-            "agent_share_outside_boxes": scene_overlaps(predicted, [torch.ones_like(b) for b in boxes], [~b for b in boxes])}
+            "agent_share_outside_boxes": scene_overlaps(predicted, [torch.ones_like(b) for b in boxes],
+                                                        [~b for b in boxes])}
 
 
 def iou_rows(probe: Any, rows: dict[str, list[torch.Tensor]], truth: list[torch.Tensor], boxes: list[torch.Tensor],
@@ -223,17 +227,20 @@ def fidelity_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[
         masks.append(agent_masks(sample, frames))
         latents, cond = pipeline.window(clip, 0, g.steps)
         noise_seed = int(torch.randint(2**31, (), generator=generator))
-        x = pipeline.world.rollout(latents[:, :, :c], [cond], new, torch.Generator(latents.device).manual_seed(noise_seed))
+        x = pipeline.world.rollout(latents[:, :, :c], [cond], new,
+                                   torch.Generator(latents.device).manual_seed(noise_seed))
         model.append(pipeline.decode(x)[0].cpu())
         tokenized.append(pipeline.decode(latents)[0].cpu())
     real_clips, mask_clips = torch.cat(real), torch.cat(masks)  # (N·v, T, 3, H, W), (N·v, T, H, W)
-    held = torch.cat([real_clips[:, :first], real_clips[:, first - 1 : first].expand(-1, frames - first, -1, -1, -1)], 1)
+    held = torch.cat([real_clips[:, :first],
+                      real_clips[:, first - 1 : first].expand(-1, frames - first, -1, -1, -1)], 1)
     metrics, networks = list(cfg.evaluate.metrics), feature_metrics(cfg)
     agents = (probe, mask_clips) if "agent_iou" in metrics else None
     candidates = {"model (rollouts)": torch.cat(model), "tokenized real (ceiling)": torch.cat(tokenized),
                   "held frame (floor)": held}
     return {"clips": int(real_clips.shape[0]), "context_frames": first, "generated_frames": frames - first,
-            "rows": {name: score(metrics, real_clips, video, first, networks, agents) for name, video in candidates.items()}}
+            "rows": {name: score(metrics, real_clips, video, first, networks, agents)
+                     for name, video in candidates.items()}}
 
 
 def one_camera(clip: LatentClip, camera: int) -> LatentClip:
@@ -285,7 +292,8 @@ def markdown(results: dict[str, Any]) -> str:
     names = list(next(iter(fidelity["rows"].values())))
     lines = [f"Fidelity ({fidelity['clips']} held-out clips (scene × camera), {fidelity['context_frames']} context + "
              f"{fidelity['generated_frames']} generated frames)", "",
-             "| rollouts vs real continuations | " + " | ".join(f"{n} {ARROWS[n]}" for n in names) + " |", "|---" + "|---:" * len(names) + "|"]
+             "| rollouts vs real continuations | " + " | ".join(f"{n} {ARROWS[n]}" for n in names) + " |",
+             "|---" + "|---:" * len(names) + "|"]
     lines += [f"| {row} | " + " | ".join(f"{values[n]:.3f}" for n in names) + " |"
               for row, values in fidelity["rows"].items()]
     lines.append("")
@@ -293,10 +301,12 @@ def markdown(results: dict[str, Any]) -> str:
     lines += ["", *gaia2_actions.markdown(results["actions"])]
     views = results["cross_view"]
     lines += ["", f"Cross-view consistency ({views['scenes']} held-out scenes × {views['frames']} frames, camera pairs "
-              f"{', '.join(views['pairs'])}; seam error: mean |camera − neighbour warped by the homography at infinity| "
+              f"{', '.join(views['pairs'])}; seam error: mean |camera − neighbour warped by the homography "
+              "at infinity| "
               "over the shared pixels, ± 95 % interval over scenes)", "",
               "| frames | seam error ↓ |", "|---|---:|"]
-    lines += [f"| {name} | {row['mean']:.4f} ± {(row['high'] - row['low']) / 2:.4f} |" for name, row in views["rows"].items()]
+    lines += [f"| {name} | {row['mean']:.4f} ± {(row['high'] - row['low']) / 2:.4f} |"
+              for name, row in views["rows"].items()]
     return "\n".join(lines) + "\n"
 
 
@@ -310,7 +320,8 @@ def agent_markdown(agents: dict[str, Any], cameras: list[str]) -> list[str]:
              "IoU inside the boxes ↑ (− plain) | agent share outside the boxes ↓ (− plain) |",
              "|---|---:|---:|---:|---:|---:|"]
     return lines + [f"| {name} | {iou_cell(row, 'iou_agent_masks')} | {iou_cell(row, 'iou_conditioning_boxes')} | "
-                    f"{difference_cell(row.get('iou_agent_masks_minus_plain'))} | {region_cell(row, 'iou_inside_boxes')} | "
+                    f"{difference_cell(row.get('iou_agent_masks_minus_plain'))} | "
+                    f"{region_cell(row, 'iou_inside_boxes')} | "
                     f"{region_cell(row, 'agent_share_outside_boxes')} |" for name, row in agents["rows"].items()]
 
 

@@ -14,8 +14,8 @@ whole conditions.
     edit      noise the clip's latents to 1 − model.edit_strength and denoise them under the (edited) conditions
 
 Writes into the run dir (staged, so a failed run leaves nothing partial): sample_<k>.mp4 (cameras side by side,
-leftmost first, a green / red top stripe on given / generated frames), grid.mp4 (the tokenized real clip, then every sample),
-latents.npy (k, v, t, C, h, w) in the tokenizer's units, conditioning.json and rollout.rrd (a tab per clip:
+leftmost first, a green / red top stripe on given / generated frames), grid.mp4 (the tokenized real clip, then every
+sample), latents.npy (k, v, t, C, h, w) in the tokenizer's units, conditioning.json and rollout.rrd (a tab per clip:
 camera grid with the conditioning boxes, 3D frusta and agent boxes, actions and captions on `frame`).
 """
 
@@ -80,7 +80,8 @@ def latent_steps(cfg: DictConfig) -> int:
     """Latent steps of the clip that the mode uses."""
     g = cfg.model
     if g.steps < 1 or not 0 < g.context_steps < g.steps:
-        raise ValueError(f"model.steps={g.steps}, model.context_steps={g.context_steps}: need 0 < context_steps < steps")
+        raise ValueError(f"model.steps={g.steps}, model.context_steps={g.context_steps}: "
+                         "need 0 < context_steps < steps")
     if cfg.mode == "rollout":
         if g.chunks < 1:
             raise ValueError(f"model.chunks={g.chunks}: expected at least 1")
@@ -100,7 +101,8 @@ def source_clip(cfg: DictConfig, pipeline: Gaia2Pipeline, steps: int) -> LatentC
         clip = read_latent_clip(folders[c.index])
     elif c.source == "synthetic":
         if "source" not in cfg.data or "cameras" not in cfg.data.source:
-            raise ValueError("context.source=synthetic with model=gaia2 renders the rig of `data`: use data=synthetic_rig")
+            raise ValueError("context.source=synthetic with model=gaia2 renders the rig of `data`: "
+                             "use data=synthetic_rig")
         world = instantiate(cfg.data.source, num_clips=c.index + 1, seed=c.seed, clip_len=frames)
         clip = pipeline.encode(world[c.index])
     elif c.source == "folder":
@@ -120,7 +122,8 @@ def cut_steps(clip: LatentClip, steps: int) -> LatentClip:
     frames = steps * clip.temporal_downsampling
     cut = (lambda x: None if x is None else x[:frames])  # noqa: E731
     return replace(clip, mean=clip.mean[:, :steps], logvar=clip.logvar[:, :steps], timestamps=clip.timestamps[:frames],
-                   actions=cut(clip.actions), text=cut(clip.text), agents=cut(clip.agents), frame_meta=cut(clip.frame_meta))
+                   actions=cut(clip.actions), text=cut(clip.text), agents=cut(clip.agents),
+                   frame_meta=cut(clip.frame_meta))
 
 
 def commanded(cfg: DictConfig, clip: LatentClip, first_frame: int, fields: list[str]) -> LatentClip:

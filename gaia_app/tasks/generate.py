@@ -33,23 +33,28 @@ from gaia_app.data.names import inside
 from gaia_app.data.token_cache import segment_done, write_segment
 from gaia_app.data.transforms import to_float, to_uint8
 from gaia_app.data.video_io import write_video
-from gaia_app.pipelines.gaia1_tokenizer import (ReconstructionOutput, TokenCachePipeline, TokenizerReconstructionPipeline,
-                                                camera_names, segment_names)
 from gaia_app.models.gaia1.tokenizer import ImageTokenizer
 from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer
 from gaia_app.pipelines.checkpoint_nets import checkpoint_nets, component_of
+from gaia_app.pipelines.gaia1_tokenizer import (
+    ReconstructionOutput,
+    TokenCachePipeline,
+    TokenizerReconstructionPipeline,
+    camera_names,
+    segment_names,
+)
 from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
-from gaia_app.utils.shipped import load_nets, shipped_folder
 from gaia_app.tasks.controllability import controllability
 from gaia_app.tasks.evaluate import evaluate
 from gaia_app.tasks.export import export, export_gaia2
-from gaia_app.tasks.showcase import showcase
 from gaia_app.tasks.gaia2_evaluate import gaia2_evaluate
 from gaia_app.tasks.gaia2_generate import GAIA2_MODES, gaia2_generate
 from gaia_app.tasks.rollout import ROLLOUT_MODES, rollout
 from gaia_app.tasks.settings import GENERATE_RULES, check_settings
+from gaia_app.tasks.showcase import showcase
 from gaia_app.utils.locks import folder_lock
 from gaia_app.utils.run_dir import atomic_write_text, save_resolved_config
+from gaia_app.utils.shipped import load_nets, shipped_folder
 from gaia_app.viz.media import log_token_map, to_hwc_uint8
 
 log = logging.getLogger(__name__)
@@ -205,7 +210,8 @@ def encode(cfg: DictConfig, tokenizer: VideoTokenizer, run_dir: Path) -> dict[st
     def writers(datamodule: Any, out_dir: Path) -> tuple[Callable, Callable]:
         pipeline = VideoTokenizerPipeline(tokenizer, datamodule.height, datamodule.width,
                                           datamodule.resize_mode, cfg.fps)
-        return (lambda clip: clip_done(out_dir, clip.clip_id)), (lambda clip: write_latent_clip(out_dir, pipeline.encode(clip)))
+        return ((lambda clip: clip_done(out_dir, clip.clip_id)),
+                (lambda clip: write_latent_clip(out_dir, pipeline.encode(clip))))
 
     def manifest(datamodule: Any) -> dict[str, Any]:
         return cache_manifest("gaia2_latents", tokenizer_sha256=weights_sha256(tokenizer), fps=cfg.fps,
@@ -224,7 +230,8 @@ def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     tensors and checked config, pipelines/checkpoint_nets.py), or mode=tokenize / reconstruct / encode on the
     tokenizer of `cfg.weights`."""
     if cfg.mode not in MODES:
-        raise ValueError(f"mode={cfg.mode}: expected one of {sorted(MODES) + list(ROLLOUT_MODES) + ['controllability', 'evaluate', 'export', 'showcase']}")
+        expected = sorted(MODES) + list(ROLLOUT_MODES) + ["controllability", "evaluate", "export", "showcase"]
+        raise ValueError(f"mode={cfg.mode}: expected one of {expected}")
     if cfg.mode in ("tokenize", "reconstruct") and cfg.get("weights"):
         return MODES[cfg.mode]["tokenizer"](cfg, shipped_tokenizer(cfg), run_dir)
     if cfg.mode == "encode" and cfg.get("weights"):
@@ -274,7 +281,8 @@ def generate(cfg: DictConfig) -> dict[str, Any]:
     save_resolved_config(cfg, run_dir)
     family = cfg.model.get("family")
     if family not in ("gaia1", "gaia2"):
-        raise ValueError(f"model={cfg.model}: generate.py runs the model families gaia1 or gaia2 (conf/model/gaia*.yaml)")
+        raise ValueError(f"model={cfg.model}: generate.py runs the model families gaia1 or gaia2 "
+                         "(conf/model/gaia*.yaml)")
     if family == "gaia2":
         results = run_gaia2(cfg, run_dir)
     elif cfg.mode in ROLLOUT_MODES:

@@ -26,8 +26,8 @@ Steps, each a train.py / generate.py command that resumes or skips finished work
   video_decoder    train.py experiment=gaia1/reference/video_decoder on the tokens of the step-1 tokenizer
   export           generate.py mode=export into the weights folder (float16 safetensors + YAML + probes), the video
                    decoder with its measured decoding setting (the conditional mean over 16 draws)
-Then MANIFEST.md beside the weights folder (gaia_app/weights/MANIFEST.md) records, per step, the exact command, its wall time, the commit and the
-machine, with the cross-entropy and controllability tables.
+Then MANIFEST.md beside the weights folder (gaia_app/weights/MANIFEST.md) records, per step, the exact command, its
+wall time, the commit and the machine, with the cross-entropy and controllability tables.
 """
 
 from __future__ import annotations
@@ -100,10 +100,11 @@ def steps(out: Path, weights: Path, gpu: bool = False) -> list[tuple[str, list[s
         ("cross_entropy", [py, "-m", "gaia_app.tasks.world_model_report", f"--ckpt={world_model}",
                            f"--tokens={out / 'tokens_finetune'}", f"--out={out / 'cross_entropy'}"]),
         ("probes", [py, "benchmarks/probe_quality.py", f"--out={out / 'probes'}", *PROBES]),
-        ("controllability", [py, "generate.py", "mode=controllability", *ckpts, *PROTOCOL, f"controllability.probes={probes}",
-                             f"hydra.run.dir={out / 'controllability'}"]),
-        ("video_decoder", [py, "train.py", "experiment=gaia1/reference/video_decoder", f"model.tokenizer_ckpt={tokenizer}",
-                           f"hydra.run.dir={out / 'video_decoder'}", "ckpt_path=last"]),
+        ("controllability", [py, "generate.py", "mode=controllability", *ckpts, *PROTOCOL,
+                             f"controllability.probes={probes}", f"hydra.run.dir={out / 'controllability'}"]),
+        ("video_decoder", [py, "train.py", "experiment=gaia1/reference/video_decoder",
+                           f"model.tokenizer_ckpt={tokenizer}", f"hydra.run.dir={out / 'video_decoder'}",
+                           "ckpt_path=last"]),
         ("export", [py, "generate.py", "mode=export", *ckpts, f"decoder_ckpt={decoder}", *DECODING,
                     f"controllability.probes={probes}",
                     f"out_dir={weights}", f"hydra.run.dir={out / 'export'}"]),

@@ -29,10 +29,16 @@ from gaia_app.data.video_io import write_video
 from gaia_app.diffusion.samplers import ImageVideoBlend
 from gaia_app.encoders.text import check_caption_fits
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline, Gaia1Rollout
-from gaia_app.pipelines.gaia1_inputs import (MODES, ContextClip, build_conditioning, context_for, describe_actions,
-                                              future_frames)
-from gaia_app.utils.shipped import shipped_folder
+from gaia_app.pipelines.gaia1_inputs import (
+    MODES,
+    ContextClip,
+    build_conditioning,
+    context_for,
+    describe_actions,
+    future_frames,
+)
 from gaia_app.utils.run_dir import atomic_write_text
+from gaia_app.utils.shipped import shipped_folder
 from gaia_app.viz.blueprints import rollout_blueprint
 from gaia_app.viz.media import log_token_map, to_hwc_uint8, video_grid
 
@@ -180,7 +186,8 @@ def rollout(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                                                  cfg.negative_prompt, cfg.speed, cfg.curvature)
     generator = torch.Generator(device=pipeline.device).manual_seed(int(cfg.seed))
     out = pipeline(None if context is None else context.frames[:t0], frames, conditioning, cfg.num_futures, generator)
-    conditions = {"mode": cfg.mode, "context": None if context is None else {"clip": context.name, "meta": context.meta},
+    conditions = {"mode": cfg.mode,
+                  "context": None if context is None else {"clip": context.name, "meta": context.meta},
                   "captions": None if conditioning.captions is None else list(conditioning.captions),
                   "negative_prompt": cfg.negative_prompt,
                   "actions": describe_actions(None if conditioning.actions is None else conditioning.actions.tolist()),
@@ -194,8 +201,8 @@ def rollout(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         log_rollout(stage / "rollout.rrd", out, context, conditions, _codebook(pipeline), scales, pipeline.upsample)
     generated = out.log_ppl[:, t0:]
     return {"mode": cfg.mode, "futures": cfg.num_futures, "context_frames": t0, "generated_frames": frames,
-            "video_frames": int(out.video.shape[1]), "fps": out.fps, "files": files + ["tokens.npy", "conditioning.json",
-                                                                                     "rollout.rrd"],
+            "video_frames": int(out.video.shape[1]), "fps": out.fps,
+            "files": files + ["tokens.npy", "conditioning.json", "rollout.rrd"],
             "mean_frame_perplexity": float(generated.exp().mean())}
 
 
@@ -214,7 +221,8 @@ def _guidance(pipeline: Gaia1Pipeline, frames: int, prompted: bool) -> dict[str,
     scales = _guidance_scales(pipeline, frames, prompted)
     if scales is None:
         return None
-    return {"config": repr(pipeline.rollouts.guidance), "per_frame_mean_scale": [round(float(s), 4) for s in scales.mean(1)]}
+    return {"config": repr(pipeline.rollouts.guidance),
+            "per_frame_mean_scale": [round(float(s), 4) for s in scales.mean(1)]}
 
 
 ROLLOUT_MODES = tuple(MODES)

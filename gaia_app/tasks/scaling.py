@@ -21,7 +21,13 @@ from hydra.experimental.callback import Callback as HydraCallback
 from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig
 
-from gaia_app.eval.scaling import PowerLaw, extrapolation_error, fit_power_law, non_embedding_parameters, training_compute
+from gaia_app.eval.scaling import (
+    PowerLaw,
+    extrapolation_error,
+    fit_power_law,
+    non_embedding_parameters,
+    training_compute,
+)
 from gaia_app.lit.strategies import block_types_of
 from gaia_app.utils.run_dir import atomic_path, atomic_write_text
 
@@ -75,11 +81,13 @@ def fit_sweep(sweep_dir: Path, holdout: int = 1, tolerance: float = 0.05) -> dic
     """Fit the law to all but the `holdout` largest-compute points, predict those; write JSON, PNG and .rrd."""
     points = read_points(sweep_dir)
     if len(points) < holdout + 3:
-        raise ValueError(f"{sweep_dir}: {len(points)} scaling points ({POINT_FILE}); a fit needs 3 plus {holdout} held out")
+        raise ValueError(f"{sweep_dir}: {len(points)} scaling points ({POINT_FILE}); "
+                         f"a fit needs 3 plus {holdout} held out")
     fitted, held = points[:-holdout], points[-holdout:]
     law = fit_power_law([p["compute"] for p in fitted], [p["val_loss"] for p in fitted])
     predictions = [{"job": p["job"], "compute": p["compute"], "val_loss": p["val_loss"],
-                    "predicted": float(law(p["compute"])), "relative_error": extrapolation_error(law, p["compute"], p["val_loss"])}
+                    "predicted": float(law(p["compute"])),
+                    "relative_error": extrapolation_error(law, p["compute"], p["val_loss"])}
                    for p in held]
     result = {"law": law.as_dict(), "fitted": fitted, "held_out": predictions, "tolerance": tolerance,
               "compute_ratio": held[-1]["compute"] / fitted[-1]["compute"],
@@ -154,16 +162,20 @@ class ScalingLawCallback(HydraCallback):
 
 def summary(result: dict[str, Any]) -> str:
     law = result["law"]
-    lines = [f"scaling law f(C) = {law['c']:.4f} + (C / {law['a']:.3g})^{law['b']:.4f} fitted on {len(result['fitted'])} runs"]
+    lines = [f"scaling law f(C) = {law['c']:.4f} + (C / {law['a']:.3g})^{law['b']:.4f} "
+             f"fitted on {len(result['fitted'])} runs"]
     for p in result["held_out"]:
-        lines.append(f"  held out {p['job']}: C = {p['compute']:.3g} ({result['compute_ratio']:.1f}× the largest fitted), "
-                     f"val loss {p['val_loss']:.4f}, predicted {p['predicted']:.4f}, error {100 * p['relative_error']:.2f}% "
+        lines.append(f"  held out {p['job']}: C = {p['compute']:.3g} "
+                     f"({result['compute_ratio']:.1f}× the largest fitted), "
+                     f"val loss {p['val_loss']:.4f}, predicted {p['predicted']:.4f}, "
+                     f"error {100 * p['relative_error']:.2f}% "
                      f"(tolerance {100 * result['tolerance']:.0f}%)")
     return "\n".join(lines)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description="Refit the scaling law of a finished `experiment=gaia1/scaling` sweep.")
+    parser = argparse.ArgumentParser(
+        description="Refit the scaling law of a finished `experiment=gaia1/scaling` sweep.")
     parser.add_argument("sweep_dir", type=Path)
     parser.add_argument("--holdout", type=int, default=1)
     parser.add_argument("--tolerance", type=float, default=0.05)

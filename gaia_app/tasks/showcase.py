@@ -150,7 +150,8 @@ def showcase(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
 def markdown(summary: dict[str, Any]) -> str:
     lines = [f"# Showcase: {summary['context_frames']} context frames, {summary['generated_frames']} generated at "
-             f"{summary['fps']:g} Hz", "", "| future | commanded speed (m/s) per step | curvature (1/m) |", "|---|---|---|"]
+             f"{summary['fps']:g} Hz", "", "| future | commanded speed (m/s) per step | curvature (1/m) |",
+             "|---|---|---|"]
     for name, actions in zip(summary["commands"], summary["commanded_actions"]):
         future = actions[summary["context_frames"]:]
         lines.append(f"| {name} | {', '.join(f'{a[0]:.1f}' for a in future)} | {future[0][1]:+.3f} |")

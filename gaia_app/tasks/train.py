@@ -15,12 +15,12 @@ from hydra.utils import instantiate
 from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
-from gaia_app.utils.checkpoint_io import check_checkpoint_file
 from gaia_app.lit.compile import CompileNet
 from gaia_app.lit.strategies import build_strategy
+from gaia_app.tasks.settings import TRAIN_RULES, check_settings
+from gaia_app.utils.checkpoint_io import check_checkpoint_file
 from gaia_app.utils.run_dir import save_resolved_config
 from gaia_app.viz.rerun_logger import rerun_logger_of
-from gaia_app.tasks.settings import TRAIN_RULES, check_settings
 
 log = logging.getLogger(__name__)
 

@@ -111,7 +111,8 @@ def load_dcp_metadata(folder: Path) -> Any:
         raise UnsafeCheckpointError(f"checkpoint index '{index}' was refused: it holds objects other than "
                                     f"torch.distributed.checkpoint metadata ({error})") from None
     except (EOFError, ValueError, TypeError, AttributeError) as error:
-        raise ValueError(f"checkpoint index '{index}' is truncated or damaged ({type(error).__name__}: {error})") from None
+        raise ValueError(f"checkpoint index '{index}' is truncated or damaged "
+                         f"({type(error).__name__}: {error})") from None
     if not isinstance(getattr(metadata, "state_dict_metadata", None), dict) or \
             not isinstance(getattr(metadata, "storage_data", None), dict):
         raise ValueError(f"checkpoint index '{index}' is not a torch.distributed.checkpoint index")
@@ -140,10 +141,10 @@ def read_dcp_entries(folder: Path, fqns: list[str], keep: bool = True) -> dict[s
     """The shard entries named by `fqns` (flattened names), nested as they were saved ({"model": {name: tensor}});
     tensors as they are, other entries unpickled weights-only (plain data; anything else is refused naming the
     entry). keep=False reads and checks without keeping."""
+    from torch.distributed.checkpoint._traverse import set_element
     from torch.distributed.checkpoint.default_planner import _EmptyStateDictLoadPlanner
     from torch.distributed.checkpoint.filesystem import FileSystemReader
     from torch.distributed.checkpoint.state_dict_loader import _load_state_dict
-    from torch.distributed.checkpoint._traverse import set_element
 
     class SafeReader(FileSystemReader):
         def read_metadata(self, *args: Any, **kwargs: Any) -> Any:

@@ -10,8 +10,8 @@ takes it. The file holds the owner's pid, for the error message.
 from __future__ import annotations
 
 import os
-from contextlib import contextmanager
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import IO
 

@@ -9,9 +9,9 @@ no discriminator); `<component>.yaml` holds how to build them:
     nets: {net: {_target_: gaia_app.models..., _partial_: true, ...}, text_encoder: {...}}
     info: {image_size: [64, 112], rate: 6.25, ...}
 
-Tensors are named `<net>.<parameter>`. Nothing is unpickled, and a YAML may only build nets and encoders of gaia_app (gaia_app/utils/targets.py), so a
-weights folder from elsewhere cannot run code on load. `export_component` writes both files from a training
-checkpoint of this project; `load_nets` reads them back.
+Tensors are named `<net>.<parameter>`. Nothing is unpickled, and a YAML may only build nets and encoders of gaia_app
+(gaia_app/utils/targets.py), so a weights folder from elsewhere cannot run code on load. `export_component` writes
+both files from a training checkpoint of this project; `load_nets` reads them back.
 """
 
 from __future__ import annotations
@@ -147,7 +147,8 @@ def build(config: Any, where: str = "net config") -> nn.Module:
     return made() if callable(made) and not isinstance(made, nn.Module) else made
 
 
-def load_nets(folder: str | Path, component: str, device: str | torch.device = "cpu") -> tuple[dict[str, nn.Module], dict]:
+def load_nets(folder: str | Path, component: str,
+              device: str | torch.device = "cpu") -> tuple[dict[str, nn.Module], dict]:
     """({net key: float32 module in eval mode}, info) of a component written by `export_component`, from a folder
     or a shipped name (e.g. "gaia1", `shipped_folder`)."""
     weights, config_path = weight_files(shipped_folder(folder), component)

@@ -125,6 +125,7 @@ def showcase_blueprint(commands: Sequence[str], prompts: Sequence[str]) -> rrb.B
     series = [rrb.TimeSeriesView(origin="/actions/speed", name="commanded speed (m/s)"),
               rrb.TimeSeriesView(origin="/actions/curvature", name="commanded curvature (1/m)")]
     return rrb.Blueprint(
-        rrb.Vertical(rrb.Horizontal(*steered), rrb.Horizontal(*prompted), rrb.Horizontal(*series), row_shares=[3, 3, 2]),
+        rrb.Vertical(rrb.Horizontal(*steered), rrb.Horizontal(*prompted), rrb.Horizontal(*series),
+                     row_shares=[3, 3, 2]),
         collapse_panels=True,
     )

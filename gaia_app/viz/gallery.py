@@ -4,10 +4,10 @@
 
 From `make demo` (a `showcase/` folder, gaia_app/tasks/showcase.py): its two labelled strips, `commands.png` (one
 context steered four ways) and `prompts.png` (night, snow against no prompt), and a headless screenshot of
-`showcase.rrd`. From `make demo-train`: for each rollout folder (`rollout_action`, `rollout_text`) a PNG of a few frames of its `grid.mp4`
-(real clip | future 0 | future 1 …, one row per time, labelled), and a screenshot of the action rollout's
-Rerun recording in the headless viewer (`rerun_rollout.png`; skipped with the reason where the viewer
-cannot start, see gaia_app/viz/screenshot.py).
+`showcase.rrd`. From `make demo-train`: for each rollout folder (`rollout_action`, `rollout_text`) a PNG of a few
+frames of its `grid.mp4` (real clip | future 0 | future 1 …, one row per time, labelled), and a screenshot of the
+action rollout's Rerun recording in the headless viewer (`rerun_rollout.png`; skipped with the reason where the
+viewer cannot start, see gaia_app/viz/screenshot.py).
 """
 
 from __future__ import annotations
@@ -33,7 +33,8 @@ def rollout_strip(run_dir: Path, rows: int = 3, scale: int = 2) -> np.ndarray:
     labelled with its time; nearest-neighbour upscaled by `scale` so the small demo frames stay crisp."""
     results = json.loads((run_dir / "results.json").read_text())
     grid, fps = read_video(run_dir / "grid.mp4")
-    upsample = round((results["video_frames"] - 1) / max(results["context_frames"] + results["generated_frames"] - 1, 1))
+    upsample = round((results["video_frames"] - 1)
+                     / max(results["context_frames"] + results["generated_frames"] - 1, 1))
     start = max(results["context_frames"] - 1, 0) * upsample
     picks = np.linspace(start, len(grid) - 1, rows).round().astype(int)
     lines = []

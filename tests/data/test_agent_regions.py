@@ -49,7 +49,8 @@ def test_frames_carry_their_boxes(world) -> None:
     item = FramesDataset(world, 64, 112, frames_per_clip=3, agent_boxes=True)[1]
     assert item["image"].shape == (3, 3, 64, 112) and item["agent_box"].shape == (3, 64, 112)
     assert "agent_box" not in FramesDataset(world, 64, 112, frames_per_clip=3)[1]
-    data = FrameDataModule(world, batch_size=2, num_workers=0, height=64, width=112, frames_per_clip=2, agent_boxes=True)
+    data = FrameDataModule(world, batch_size=2, num_workers=0, height=64, width=112, frames_per_clip=2,
+                           agent_boxes=True)
     data.setup("fit")
     batch = next(iter(data.train_dataloader()))
     assert batch["agent_box"].shape == (4, 64, 112) and str(batch["agent_box"].dtype) == "torch.bool"

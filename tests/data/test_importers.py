@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gaia_app.data.clip import AGENT_CATEGORIES, ClipError
 from gaia_app.data.actions import quaternion_to_rotation
+from gaia_app.data.clip import AGENT_CATEGORIES, ClipError
 from gaia_app.data.clip_folder import ClipFolderDataset, inspect_clip, read_clip
 from gaia_app.data.importers.dashcam import import_dashcam
 from gaia_app.data.importers.dashcam import main as dashcam_main

@@ -20,8 +20,8 @@ def latent_clip(frames: int = 8, views: int = 2, **kw) -> LatentClip:
     args = dict(clip_id="clip_0001", mean=rng.normal(size=(views, steps, 4, 2, 3)).astype(np.float32),
                 logvar=rng.normal(size=(views, steps, 4, 2, 3)).astype(np.float32), temporal_downsampling=4, fps=12.5,
                 image_size=(64, 112), timestamps=np.arange(frames) / 12.5, cameras=cameras, meta={"weather": "rain"},
-                actions=rng.normal(size=(frames, 2)).astype(np.float32), text=["It is raining."] * frames, agents=agents,
-                frame_meta=[{"traffic_light": "red"}] * frames)
+                actions=rng.normal(size=(frames, 2)).astype(np.float32), text=["It is raining."] * frames,
+                agents=agents, frame_meta=[{"traffic_light": "red"}] * frames)
     return LatentClip(**{**args, **kw})
 
 
@@ -62,7 +62,8 @@ def test_inconsistent_fields_are_named(field: str, value, message: str) -> None:
 def test_unfinished_or_broken_folders_are_reported(tmp_path: Path) -> None:
     folder = write_latent_clip(tmp_path, latent_clip())
     (folder / "conditions.json").write_text(json.dumps({"fps": 12.5}))
-    with pytest.raises(ClipError, match=r"conditions.json: missing fields \['cameras', 'image_size', 'meta', 'temporal_downsampling'\]"):
+    with pytest.raises(ClipError, match=r"conditions.json: missing fields "
+                                        r"\['cameras', 'image_size', 'meta', 'temporal_downsampling'\]"):
         read_latent_clip(folder)
     (folder / "mean.npy").unlink()
     with pytest.raises(ClipError, match="no mean.npy"):

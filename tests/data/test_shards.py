@@ -16,8 +16,14 @@ import torch
 from gaia_app.data.latent_cache import write_latent_clip
 from gaia_app.data.shard import main as shard_main
 from gaia_app.data.shard import parse_size, write_shards
-from gaia_app.data.shards import (ClipShardDataModule, LatentShardDataModule, ShardLoader, TokenShardDataModule,
-                                  shard_urls, split_shards)
+from gaia_app.data.shards import (
+    ClipShardDataModule,
+    LatentShardDataModule,
+    ShardLoader,
+    TokenShardDataModule,
+    shard_urls,
+    split_shards,
+)
 from gaia_app.data.token_cache import TokenSegment, find_segments, load_segment, write_segment
 from tests.data.test_latent_cache import latent_clip
 
@@ -31,8 +37,9 @@ def token_cache(root: Path, clips: int = 12, speeds: list[float] | None = None) 
         speed = speeds[c] if speeds else float(c)
         actions = np.stack([np.full(STEPS, speed), rng.normal(0, 0.01, STEPS)], 1).astype(np.float32)
         for camera in ("front", "left"):
-            write_segment(root, TokenSegment(f"clip{c}{'.v2' if c == 3 else ''}/{camera}", rng.integers(0, 1000, (STEPS, 4, 6)),
-                                             actions, np.arange(STEPS) * 0.16, [f"caption {c}"] * STEPS))
+            write_segment(root, TokenSegment(f"clip{c}{'.v2' if c == 3 else ''}/{camera}",
+                                             rng.integers(0, 1000, (STEPS, 4, 6)), actions, np.arange(STEPS) * 0.16,
+                                             [f"caption {c}"] * STEPS))
     return root
 
 
@@ -43,7 +50,8 @@ def window_ids(batches) -> list[tuple]:
 
 def folder_window_ids(cache: Path) -> list[tuple]:
     segments = [load_segment(p) for p in find_segments(cache)]
-    return [tuple(s.tokens[i : i + SEQ].flatten()[:8].tolist()) for s in segments for i in range(0, STEPS - SEQ + 1, STRIDE)]
+    return [tuple(s.tokens[i : i + SEQ].flatten()[:8].tolist())
+            for s in segments for i in range(0, STEPS - SEQ + 1, STRIDE)]
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +63,8 @@ def tokens(tmp_path_factory) -> tuple[Path, Path]:
 
 
 def token_module(shards: Path, **kw) -> TokenShardDataModule:
-    return TokenShardDataModule(str(shards), seq_len=SEQ, stride=STRIDE, **{"batch_size": 5, "shuffle_buffer": 16, **kw})
+    return TokenShardDataModule(str(shards), seq_len=SEQ, stride=STRIDE,
+                                **{"batch_size": 5, "shuffle_buffer": 16, **kw})
 
 
 def test_shard_layout_index_and_whole_clips_per_split(tokens) -> None:
@@ -74,7 +83,8 @@ def test_shard_layout_index_and_whole_clips_per_split(tokens) -> None:
     assert all(len(sides) == 1 for sides in keys.values())  # both cameras of a clip on one side
     assert "clip3%2Ev2" in keys  # a `.` in a name is escaped, so WebDataset's key split stays exact
     features = np.load(shards / "features-train.npz")
-    assert set(features.files) == {"speed", "curvature"} and len(features["speed"]) == index["splits"]["train"]["samples"]
+    assert set(features.files) == {"speed", "curvature"}
+    assert len(features["speed"]) == index["splits"]["train"]["samples"]
 
 
 @pytest.mark.parametrize("workers", [0, 2])
@@ -88,7 +98,8 @@ def test_an_epoch_streams_every_window_exactly_once(tokens, workers: int) -> Non
     assert set(window_ids(train)) < set(folder_window_ids(cache))  # the same windows the folder loader cuts
     assert len(streamed) == len(set(streamed))
     batch = train[0]
-    assert batch["tokens"].shape[1:] == (SEQ, 24) and batch["actions"].shape[1:] == (SEQ, 2) and len(batch["text"][0]) == SEQ
+    assert batch["tokens"].shape[1:] == (SEQ, 24) and batch["actions"].shape[1:] == (SEQ, 2)
+    assert len(batch["text"][0]) == SEQ
     assert batch["tokens"].dtype == torch.int64  # widened in the main process after the int16 trip
 
 
@@ -184,13 +195,16 @@ def test_url_patterns_and_pipes_read_the_same_stream(tokens) -> None:
 def test_latent_cache_shards_give_the_folder_windows(tmp_path: Path) -> None:
     for split, count in (("train", 5), ("val", 2)):
         for i in range(count):
-            write_latent_clip(tmp_path / "latents" / split, latent_clip(clip_id=f"{split}_{i}", meta={"weather": "rain" if i % 2 else "clear"}))
+            write_latent_clip(tmp_path / "latents" / split,
+                              latent_clip(clip_id=f"{split}_{i}", meta={"weather": "rain" if i % 2 else "clear"}))
     shard_main([str(tmp_path / "latents"), str(tmp_path / "shards"), "--kind", "latents", "--shard-size", "20KB"])
-    module = LatentShardDataModule(str(tmp_path / "shards"), steps=2, metadata_fields=["weather"], batch_size=2, num_workers=0)
+    module = LatentShardDataModule(str(tmp_path / "shards"), steps=2, metadata_fields=["weather"], batch_size=2,
+                                   num_workers=0)
     train = list(module.train_dataloader())
     assert sorted(c for b in train for c in b["clip_id"]) == [f"train_{i}" for i in range(5)]
     batch = train[0]
-    assert batch["mean"].shape[1:3] == (2, 2) and "agents_centre" in batch and batch["intrinsics"].shape[1:] == (2, 3, 3)
+    assert (batch["mean"].shape[1:3] == (2, 2) and "agents_centre" in batch
+            and batch["intrinsics"].shape[1:] == (2, 3, 3))
     val = list(module.val_dataloader())
     assert sorted(c for b in val for c in b["clip_id"]) == ["val_0", "val_1"]
     assert set(np.load(tmp_path / "shards" / "features-train.npz").files) == {"weather", "speed", "curvature"}

@@ -87,7 +87,8 @@ def test_bad_arguments_name_the_argument(kwargs: dict, argument: str) -> None:
 
 
 def test_weather_and_time_of_day_mixes_are_obeyed() -> None:
-    ds = SyntheticClipDataset(num_clips=12, seed=0, weather_mix={"snow": 1.0}, time_of_day_mix={"dusk": 2.0, "night": 0.0})
+    ds = SyntheticClipDataset(num_clips=12, seed=0, weather_mix={"snow": 1.0},
+                              time_of_day_mix={"dusk": 2.0, "night": 0.0})
     described = [ds.describe(i) for i in range(len(ds))]
     assert {d["weather"] for d in described} == {"snow"} and {d["time_of_day"] for d in described} == {"dusk"}
     clip = ds[0]
@@ -126,7 +127,8 @@ def test_open_loop_clips_switch_to_a_constant_command_in_the_same_scene() -> Non
         np.testing.assert_array_equal(mine.actions[:6], theirs.actions[:6])  # the switch is in the middle half
         if open_loop:
             curvature, speed = mine.actions[-6:, 1], mine.actions[-6:, 0]
-            assert np.ptp(curvature) == 0 and np.allclose(np.diff(speed), np.diff(speed)[0], atol=1e-4) or speed.min() == 0
+            assert ((np.ptp(curvature) == 0 and np.allclose(np.diff(speed), np.diff(speed)[0], atol=1e-4))
+                    or speed.min() == 0)
             assert not np.array_equal(mine.actions, theirs.actions)
         else:
             np.testing.assert_array_equal(mine.actions, theirs.actions)

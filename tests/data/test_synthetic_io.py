@@ -17,7 +17,8 @@ from gaia_app.viz.world import main as world_main
 
 
 def test_export_writes_clip_folders_that_read_back(tmp_path: Path) -> None:
-    folders = export_main(["--out", str(tmp_path), "--num-clips", "2", "--seed", "5", "--height", "64", "--width", "112",
+    folders = export_main(["--out", str(tmp_path), "--num-clips", "2", "--seed", "5", "--height", "64",
+                           "--width", "112",
                            "--cameras", "front", "rear_left", "--clip-len", "6", "--fps", "12.5",
                            "--weather-mix", "rain=1", "--agent-density", "0.5"])
     expected = SyntheticClipDataset(num_clips=2, seed=5, cameras=["front", "rear_left"], clip_len=6, fps=12.5,

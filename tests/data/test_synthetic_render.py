@@ -131,7 +131,8 @@ def ground_truth_mask(camera, inside) -> np.ndarray:
     """Pixels whose centre ray hits the ground (z = 0, ego frame) at a point where inside(x, y)."""
     j, i = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
     k = camera.intrinsics
-    rays = np.stack([(j - k[0, 2]) / k[0, 0], (i - k[1, 2]) / k[1, 1], np.ones_like(j)], -1) @ camera.extrinsics[:3, :3].T
+    rays = (np.stack([(j - k[0, 2]) / k[0, 0], (i - k[1, 2]) / k[1, 1], np.ones_like(j)], -1)
+            @ camera.extrinsics[:3, :3].T)
     origin = camera.extrinsics[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         t = -origin[2] / rays[..., 2]
@@ -147,8 +148,13 @@ def test_polygon_crossing_behind_the_camera_renders_without_wrap_around(name: st
     quad = np.array([[-15.0, -1.5, 0.0], [40.0, -1.5, 0.0], [40.0, 3.0, 0.0], [-15.0, 3.0, 0.0]])
     drawn = render_ground(quad, camera)
     truth = ground_truth_mask(camera, lambda x, y: (x > -15) & (x < 40) & (y > -1.5) & (y < 3.0))
-    grow = lambda mask: cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-    shrink = lambda mask: cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+
+    def grow(mask: np.ndarray) -> np.ndarray:
+        return cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+
+    def shrink(mask: np.ndarray) -> np.ndarray:
+        return cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+
     assert truth.sum() > 500
     assert not (drawn & ~grow(grow(truth))).any()  # no stray pixels anywhere (wrap-around would fill the sky)
     assert not (shrink(truth) & ~drawn).any()  # and nothing visible is missing
@@ -160,7 +166,8 @@ def test_polygon_crossing_behind_the_camera_renders_without_wrap_around(name: st
 
 def test_agent_2d_box_matches_its_mask() -> None:
     scenario = Scenario(**EMPTY_ROAD, lanes=2, ego_lane=1, ego_actions=open_loop(5.0, 0.0, 4),
-                        agents=(AgentSpec("car", gap=9.0, lane=0, parked=True), AgentSpec("bus", gap=30.0, lane=1, speed=5.0),
+                        agents=(AgentSpec("car", gap=9.0, lane=0, parked=True),
+                                AgentSpec("bus", gap=30.0, lane=1, speed=5.0),
                                 AgentSpec("pedestrian", gap=14.0, d=-9.5, parked=True)))
     sample = generate_sample(seed=8, height=128, width=224, clip_len=4, scenario=scenario)
     for t in (0, 3):
@@ -171,7 +178,8 @@ def test_agent_2d_box_matches_its_mask() -> None:
             rows, cols = np.nonzero(ids == b["track_id"])
             mask_box = np.array([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1])
             x0, y0, x1, y1 = b["box"]
-            inter = max(0, min(x1, mask_box[2]) - max(x0, mask_box[0])) * max(0, min(y1, mask_box[3]) - max(y0, mask_box[1]))
+            inter = (max(0, min(x1, mask_box[2]) - max(x0, mask_box[0]))
+                     * max(0, min(y1, mask_box[3]) - max(y0, mask_box[1])))
             union = (x1 - x0) * (y1 - y0) + np.prod(mask_box[2:] - mask_box[:2]) - inter
             assert np.abs(mask_box - np.array(b["box"])).max() <= 1.5, (b, mask_box)
             if b["category"] != "pedestrian":  # a pedestrian is 7 px wide: one pixel of rasterisation costs 15 %
@@ -192,7 +200,10 @@ def test_adjacent_cameras_overlap() -> None:
     """Every pair of adjacent default cameras sees a common ground point, and a car placed in the
     front / front_left overlap appears in both views with the same colour."""
     rig = {c.name: c for c in build_rig(5, 64, 112)}
-    yaw_of = lambda cam: np.arctan2(cam.extrinsics[1, 2], cam.extrinsics[0, 2])  # optical axis in the ego frame
+
+    def yaw_of(cam) -> float:  # optical axis in the ego frame
+        return np.arctan2(cam.extrinsics[1, 2], cam.extrinsics[0, 2])
+
     for a, b in (("front", "front_left"), ("front", "front_right"), ("front_left", "rear_left"),
                  ("front_right", "rear_right")):
         yaw = (yaw_of(rig[a]) + yaw_of(rig[b])) / 2  # the bisector lies in both fields of view
@@ -202,7 +213,8 @@ def test_adjacent_cameras_overlap() -> None:
             assert depth[0] > 0 and 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height, (a, b, cam.name)
     scenario = Scenario(**EMPTY_ROAD, lanes=1, ego_actions=open_loop(0.0, 0.0, 1),
                         agents=(AgentSpec("car", gap=14.0, d=9.0, parked=True),))
-    sample = generate_sample(seed=3, height=96, width=168, cameras=["front", "front_left"], clip_len=1, scenario=scenario)
+    sample = generate_sample(seed=3, height=96, width=168, cameras=["front", "front_left"], clip_len=1,
+                             scenario=scenario)
     colours = []
     for k in range(2):
         seen = sample.instance_ids(0, k) == 0

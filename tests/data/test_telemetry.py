@@ -50,7 +50,8 @@ def test_gps_track_gives_speed_and_curvature(tmp_path: Path) -> None:
     lat = lat0 + np.degrees(north / 6_371_000.0)
     lon = lon0 + np.degrees(east / (6_371_000.0 * np.cos(np.radians(lat0))))
     path = tmp_path / "gps.jsonl"
-    path.write_text("\n".join(json.dumps({"t": float(a), "lat": float(b), "lon": float(c)}) for a, b, c in zip(t, lat, lon)))
+    path.write_text("\n".join(json.dumps({"t": float(a), "lat": float(b), "lon": float(c)})
+                              for a, b, c in zip(t, lat, lon)))
     np.testing.assert_allclose(local_xy(lat, lon), np.stack([east, north], 1), atol=0.05)
     actions = actions_at(read_telemetry(path), np.arange(1.0, 9.0, 0.5))
     np.testing.assert_allclose(actions[:, 0], 10.0, rtol=2e-3)

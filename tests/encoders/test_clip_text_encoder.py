@@ -51,7 +51,8 @@ def test_a_whole_clip_directory_loads_its_text_tower(tmp_path: Path) -> None:
 
 
 def test_clip_errors_name_the_directory_and_the_width(tiny_clip_dir: Path, tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match=f"has output width {CLIP_PROJECTION}: set model.text_encoder.dim={CLIP_PROJECTION}"):
+    with pytest.raises(ValueError,
+                       match=f"has output width {CLIP_PROJECTION}: set model.text_encoder.dim={CLIP_PROJECTION}"):
         CLIPTextEncoder(tiny_clip_dir, dim=768, tokens=16)
     with pytest.raises(FileNotFoundError, match=r"nowhere.*CLIP"):
         CLIPTextEncoder(tmp_path / "nowhere", dim=CLIP_PROJECTION)

@@ -37,7 +37,8 @@ def test_paper_experiment_names_the_missing_checkpoint(tmp_path: Path) -> None:
 def test_dino_option_loads_a_local_checkpoint(tmp_path: Path) -> None:
     """encoder@model.dino=dino_vits16 with its checkpoint in place: the module gets a frozen teacher."""
     (tmp_path / "pretrained").mkdir()
-    torch.save(VisionTransformer(embed_dim=384, depth=12, num_heads=6).state_dict(), tmp_path / "pretrained" / "dino_vits16.pth")
+    torch.save(VisionTransformer(embed_dim=384, depth=12, num_heads=6).state_dict(),
+               tmp_path / "pretrained" / "dino_vits16.pth")
     cfg = compose_config("train", ["encoder@model.dino=dino_vits16"], tmp_path)
     cfg.paths.root_dir = str(tmp_path)
     module = instantiate(cfg.model)

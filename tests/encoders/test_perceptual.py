@@ -17,7 +17,8 @@ TORCHVISION_CONVS = (0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28)
 
 @pytest.fixture(scope="module")
 def vgg16(tmp_path_factory) -> tuple[VGG16Features, Path]:
-    """A randomly initialised full-size VGG16 trunk, saved as torchvision's `vgg16().features.state_dict()` (keys `N.weight`)."""
+    """A randomly initialised full-size VGG16 trunk, saved as torchvision's `vgg16().features.state_dict()` (keys
+    `N.weight`)."""
     torch.manual_seed(0)
     trunk = VGG16Features()
     path = tmp_path_factory.mktemp("vgg") / "vgg16_features.pth"
@@ -75,10 +76,12 @@ def test_lpips_heads_load_from_official_key_names(tmp_path: Path) -> None:
     torch.save(trunk.state_dict(), tmp_path / "small.pth")
     weights = [torch.rand(1, c, 1, 1) for c in trunk.tap_channels()]
     torch.save({f"lin{k}.model.1.weight": w for k, w in enumerate(weights)}, tmp_path / "lpips_vgg.pth")
-    distance = load_perceptual(checkpoint=tmp_path / "small.pth", heads_checkpoint=tmp_path / "lpips_vgg.pth", base_width=8)
+    distance = load_perceptual(checkpoint=tmp_path / "small.pth", heads_checkpoint=tmp_path / "lpips_vgg.pth",
+                               base_width=8)
     x, y = torch.rand(1, 3, 32, 32) * 2 - 1, torch.rand(1, 3, 32, 32) * 2 - 1
     feats_x, feats_y = trunk(distance.normalize(x)), trunk(distance.normalize(y))
-    per_layer = [((unit_normalize(a) - unit_normalize(b)).pow(2) * w).sum(1).mean() for a, b, w in zip(feats_x, feats_y, weights)]
+    per_layer = [((unit_normalize(a) - unit_normalize(b)).pow(2) * w).sum(1).mean()
+                 for a, b, w in zip(feats_x, feats_y, weights)]
     expected = sum(per_layer) / 5
     assert distance(x, y).item() == pytest.approx(expected.item(), rel=1e-5)
 

@@ -77,7 +77,10 @@ def test_lpips_from_local_vgg_weights(tmp_path) -> None:
 
     torch.manual_seed(0)
     torch.save(VGG16Features().state_dict(), tmp_path / "vgg16_features.pth")
-    callback = lambda: EvaluationCallback(["lpips"], max_batches=1, lpips_checkpoint=str(tmp_path / "vgg16_features.pth"))  # noqa: E731
+
+    def callback() -> EvaluationCallback:
+        return EvaluationCallback(["lpips"], max_batches=1, lpips_checkpoint=str(tmp_path / "vgg16_features.pth"))
+
     same = validate(PairModule(0.0), callback(), tmp_path / "same")
     noisy = validate(PairModule(0.3), callback(), tmp_path / "noisy")
     assert same["eval/lpips"] == pytest.approx(0.0, abs=1e-6) and noisy["eval/lpips"] > 0.01

@@ -76,8 +76,8 @@ def make_module(frozen: dict[str, Path] | None = None, **kw) -> ImageTokenizerMo
 
 def fit(module: ImageTokenizerModule, steps: int, **trainer_kw) -> tuple[L.Trainer, RecordSteps]:
     record = RecordSteps()
-    trainer = L.Trainer(max_steps=steps, accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False, callbacks=[record], **trainer_kw)
+    trainer = L.Trainer(max_steps=steps, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, callbacks=[record], **trainer_kw)
     trainer.fit(module, DataLoader(FixedBatch(), batch_size=4))
     return trainer, record
 
@@ -110,12 +110,15 @@ def test_adaptive_weight_balances_gradients_at_the_decoder_output() -> None:
     terms = module.generator_terms(image, module.tokenizer(image), with_gan=True)
     assert terms["adaptive_weight"].item() > 0
     gan = -module.discriminator(module.tokenizer(image).reconstruction).mean()
-    assert terms["gan"].item() == pytest.approx(module.weights.gan * terms["adaptive_weight"].item() * gan.item(), rel=1e-4)
-    assert terms["loss"].item() == pytest.approx(sum(terms[k].item() for k in ("l1", "l2", "codebook", "gan")), rel=1e-5)
+    assert terms["gan"].item() == pytest.approx(module.weights.gan * terms["adaptive_weight"].item() * gan.item(),
+                                                rel=1e-4)
+    assert terms["loss"].item() == pytest.approx(sum(terms[k].item() for k in ("l1", "l2", "codebook", "gan")),
+                                                 rel=1e-5)
 
 
 def test_none_switches_losses_off_with_warnings(caplog) -> None:
-    module = make_module(perceptual="none", dino=DictConfig({}), discriminator=None)  # CLI value, `encoder=none` node, null
+    # CLI value, `encoder=none` node, null
+    module = make_module(perceptual="none", dino=DictConfig({}), discriminator=None)
     with caplog.at_level(logging.WARNING, logger="gaia_app.lit.gaia1_tokenizer"):
         module.load_frozen_networks()
     messages = " | ".join(r.getMessage() for r in caplog.records)
@@ -151,7 +154,8 @@ def test_trainer_gradient_clipping_is_refused_with_the_keys_to_change() -> None:
 
 
 def test_tokenizer_learns_with_gan_perceptual_and_dino(frozen_checkpoints) -> None:
-    """All GAIA-1 §4.1 losses on (tiny random perceptual and DINO nets): the fixed batch's L1 falls ≥ 3× in 100 steps."""
+    """All GAIA-1 §4.1 losses on (tiny random perceptual and DINO nets): the fixed batch's L1 falls ≥ 3× in 100
+    steps."""
     sched = functools.partial(warmup_cosine, warmup_steps=5, decay_steps=100, final_lr=3e-4)
     module = make_module(frozen_checkpoints, sched=sched, gan_start_step=30)
     trainer, record = fit(module, steps=100)
@@ -181,7 +185,8 @@ def test_loss_weights_from_config_are_the_ones_applied(tmp_path) -> None:
     assert torch.allclose(terms["l2"], 3.0 * torch.nn.functional.mse_loss(out.reconstruction, image))
     assert torch.allclose(terms["codebook"], 0.5 * (out.codebook_loss + out.commitment_loss))
     defaults = instantiate(compose_config("train", ["model=gaia1_tokenizer"], tmp_path).model).weights
-    assert (defaults.l1, defaults.l2, defaults.perceptual, defaults.gan, defaults.codebook, defaults.dino) == (0.2, 2.0, 0.1, 1.0, 1.0, 0.1)
+    assert ((defaults.l1, defaults.l2, defaults.perceptual, defaults.gan, defaults.codebook, defaults.dino)
+            == (0.2, 2.0, 0.1, 1.0, 1.0, 0.1))
 
 
 class BoxedBatch(FixedBatch):

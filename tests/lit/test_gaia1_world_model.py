@@ -28,9 +28,10 @@ def token_cache(tmp_path_factory) -> Path:
 
 def test_world_model_experiment_trains_and_logs_perplexity(token_cache: Path, tmp_path: Path) -> None:
     cfg = compose_config("train", [
-        "experiment=gaia1/world_model_tiny", "trainer=tiny", "logger=csv", "extras.print_config=false", "trainer.max_steps=4",
-        "trainer.val_check_interval=2", "trainer.limit_val_batches=1",
-        f"data.path={token_cache}", "data.frame_stride=1", "model.net.vocab_size=16", "model.net.image_tokens=12", "model.net.dim=32",
+        "experiment=gaia1/world_model_tiny", "trainer=tiny", "logger=csv", "extras.print_config=false",
+        "trainer.max_steps=4", "trainer.val_check_interval=2", "trainer.limit_val_batches=1",
+        f"data.path={token_cache}", "data.frame_stride=1", "model.net.vocab_size=16", "model.net.image_tokens=12",
+        "model.net.dim=32",
         "model.net.depth=1", "model.net.heads=2", "model.net.kv_heads=1",
     ], tmp_path)
     assert cfg.trainer.gradient_clip_val == 1.0 and list(cfg.model.optim.betas) == [0.9, 0.95]
@@ -149,8 +150,8 @@ def test_init_from_a_weights_folder_starts_from_its_world_model(token_cache: Pat
     parent = tmp_path / "first" / "checkpoints" / "last.ckpt"
     export_component(read_checkpoint(parent), tmp_path / "weights", "world_model", ["net", "text_encoder"],
                      {"rate": 6.25}, "float32")  # as mode=export writes it, in float32 to compare exactly
-    child = train(compose_config("train", [*overrides, "model.optim.lr=1e-12", f"model.init_from={tmp_path / 'weights'}"],
-                                 tmp_path / "child"))
+    child = train(compose_config("train", [*overrides, "model.optim.lr=1e-12",
+                                           f"model.init_from={tmp_path / 'weights'}"], tmp_path / "child"))
     for name, value in load_module(parent).state_dict().items():  # net and learned text encoder
         torch.testing.assert_close(child["model"].state_dict()[name], value, msg=name)
     (tmp_path / "empty").mkdir()

@@ -1,4 +1,5 @@
-"""GAIA-2 video tokenizer training (GAIA-2 report, tokenizer): stage 1 learns, stage 2 fine-tunes only the decoder with a 3-D GAN."""
+"""GAIA-2 video tokenizer training (GAIA-2 report, tokenizer): stage 1 learns, stage 2 fine-tunes only the decoder
+with a 3-D GAN."""
 
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ from gaia_app.nn.vit import VisionTransformer
 VIT = dict(embed_dim=24, depth=1, num_heads=2)
 TINY_NET = functools.partial(VideoTokenizer, spatial_downsampling=8, temporal_downsampling=4, latent_channels=8,
                              chunk_latents=2, conv_mults=(), encoder_dim=48, encoder_depth=1,
-                             encoder_heads=2, decoder_dim=64, decoder_depth=2, decoder_heads=2, distill_dim=VIT["embed_dim"])
+                             encoder_heads=2, decoder_dim=64, decoder_depth=2, decoder_heads=2,
+                             distill_dim=VIT["embed_dim"])
 TINY_DISC = functools.partial(PatchDiscriminator3d, channels=8, num_layers=2)
 
 
@@ -50,7 +52,8 @@ class RecordSteps(L.Callback):
 
 def make_module(**kw) -> VideoTokenizerModule:
     torch.manual_seed(0)
-    args = dict(net=TINY_NET, optim=functools.partial(torch.optim.AdamW, lr=2e-3, weight_decay=0.0), discriminator=TINY_DISC)
+    args = dict(net=TINY_NET, optim=functools.partial(torch.optim.AdamW, lr=2e-3, weight_decay=0.0),
+                discriminator=TINY_DISC)
     return VideoTokenizerModule(**{**args, **kw})
 
 

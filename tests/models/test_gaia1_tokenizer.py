@@ -27,7 +27,8 @@ def test_token_grid_follows_downsampling() -> None:
 
 
 def test_paper_downsampling_and_bits() -> None:
-    net = ImageTokenizer(channels=4, channel_mults=(1, 1, 1, 1, 1), blocks_per_stage=1, latent_dim=8, codebook_size=8192)
+    net = ImageTokenizer(channels=4, channel_mults=(1, 1, 1, 1, 1), blocks_per_stage=1, latent_dim=8,
+                         codebook_size=8192)
     assert net.downsampling == 16
     # GAIA-1 §4.1: 288×512 → 18×32 = 576 tokens of 13 bits
     assert net.bits_per_image(288, 512) == pytest.approx(576 * 13)

@@ -23,7 +23,8 @@ def rig(cameras: int | list[str], height: int = 64, width: int = 112) -> tuple[t
 
 def agents(t: int, centres: list[list[float]]) -> AgentBoxes3d:
     n = len(centres)
-    return AgentBoxes3d(centre=torch.tensor(centres).expand(1, t, n, 3), size=torch.tensor([4.5, 1.8, 1.6]).expand(1, t, n, 3),
+    return AgentBoxes3d(centre=torch.tensor(centres).expand(1, t, n, 3),
+                        size=torch.tensor([4.5, 1.8, 1.6]).expand(1, t, n, 3),
                         yaw=torch.zeros(1, t, n), category=torch.zeros(1, t, n, dtype=torch.long),
                         mask=torch.ones(1, t, n, dtype=torch.bool))
 
@@ -32,7 +33,8 @@ def conditions(cameras: int = 3, t: int = 3, seed: int = 0) -> WorldConditions:
     g = torch.Generator().manual_seed(seed)
     k, e = rig(cameras)
     return WorldConditions(k, e, (64, 112), timestamps=torch.arange(t)[None].float() * 0.32,
-                           actions=torch.randn(1, t, 2, generator=g), agents=agents(t, [[15.0, 1.0, 0.8], [8.0, -3.0, 0.8]]),
+                           actions=torch.randn(1, t, 2, generator=g),
+                           agents=agents(t, [[15.0, 1.0, 0.8], [8.0, -3.0, 0.8]]),
                            metadata={"weather": torch.tensor([1]), "time_of_day": torch.tensor([2])},
                            text=torch.randn(1, 16, generator=g))
 
@@ -40,7 +42,8 @@ def conditions(cameras: int = 3, t: int = 3, seed: int = 0) -> WorldConditions:
 def model(**kw) -> LatentWorldModel:
     """A small model with every weight perturbed, so no zero-initialised path hides a condition."""
     torch.manual_seed(0)
-    net = LatentWorldModel(**{**dict(latent_channels=8, dim=32, depth=2, heads=4, metadata_fields=META, text_dim=16), **kw})
+    net = LatentWorldModel(**{**dict(latent_channels=8, dim=32, depth=2, heads=4, metadata_fields=META, text_dim=16),
+                              **kw})
     with torch.no_grad():
         for p in net.parameters():
             p.add_(0.05 * torch.randn_like(p))
@@ -142,7 +145,8 @@ def test_box_projection_into_the_rig() -> None:
     front = boxes[0, 0, 0, 0]
     assert visible[0, 0].tolist() == [[True, False], [False, False], [False, False]]
     assert float((front[0] + front[2]) / 2) == pytest.approx(0.5, abs=0.02)
-    assert float(depth[0, 0, 0, 0]) == pytest.approx(15.0 - 1.8 + 2.25, abs=0.3)  # far face: 15 m + half length − camera x
+    # far face: 15 m + half length − camera x
+    assert float(depth[0, 0, 0, 0]) == pytest.approx(15.0 - 1.8 + 2.25, abs=0.3)
     assert boxes[0, 0, :, 1].abs().max() == 0  # invisible boxes are zeroed, not garbage
 
 
@@ -161,7 +165,8 @@ def test_agent_raster_paints_agents_where_their_boxes_fall_and_only_there() -> N
     keep = net.conditioner.keep_masks(1, x.device)
     with torch.no_grad():
         features = net.conditioner.agent_features
-        moved = (net.embed(x, near, keep, features(near)) - net.embed(x, far, keep, features(far))).abs().amax(dim=(0, 1, 3))
+        moved = (net.embed(x, near, keep, features(near))
+                 - net.embed(x, far, keep, features(far))).abs().amax(dim=(0, 1, 3))
     gh, gw = 8 // net.patch, 14 // net.patch
     boxes, _, visible = project_boxes(near.agents, near.intrinsics, near.extrinsics, near.image_size)
     from gaia_app.models.gaia2.conditioning import cell_coverage

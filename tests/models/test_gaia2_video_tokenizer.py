@@ -1,4 +1,5 @@
-"""GAIA-2 video tokenizer network (GAIA-2 report, tokenizer): shapes, compression, chunking rules, the Gaussian posterior."""
+"""GAIA-2 video tokenizer network (GAIA-2 report, tokenizer): shapes, compression, chunking rules, the Gaussian
+posterior."""
 
 from __future__ import annotations
 
@@ -28,7 +29,8 @@ def video(b: int, v: int, t: int, h: int, w: int, seed: int = 0) -> torch.Tensor
 
 @pytest.mark.parametrize("size", [(32, 64), (64, 112), (48, 160)])
 @pytest.mark.parametrize("frames", [4, 8, 12])
-def test_shapes_and_compression_at_several_resolutions(small: VideoTokenizer, size: tuple[int, int], frames: int) -> None:
+def test_shapes_and_compression_at_several_resolutions(small: VideoTokenizer, size: tuple[int, int],
+                                                       frames: int) -> None:
     h, w = size
     x = video(1, 2, frames, h, w)
     with torch.no_grad():
@@ -41,7 +43,8 @@ def test_shapes_and_compression_at_several_resolutions(small: VideoTokenizer, si
 
 
 def test_paper_compression_factors() -> None:
-    """GAIA-2 report, tokenizer: 448×960 → 14×30 per latent step, 8 frames → 1 step, 64 channels (a narrow net, same factors)."""
+    """GAIA-2 report, tokenizer: 448×960 → 14×30 per latent step, 8 frames → 1 step, 64 channels (a narrow net, same
+    factors)."""
     net = VideoTokenizer(spatial_downsampling=32, temporal_downsampling=8, latent_channels=64, conv_channels=4,
                          conv_mults=(1, 2, 2, 2), encoder_dim=16, encoder_depth=1, encoder_heads=1, decoder_dim=16,
                          decoder_depth=1, decoder_heads=1)
@@ -57,7 +60,8 @@ def test_frames_not_divisible_by_tau_are_refused(small: VideoTokenizer) -> None:
         small.encode(video(1, 1, 6, 32, 64))
 
 
-@pytest.mark.parametrize("shape, message", [((1, 1, 4, 3, 36, 64), r"36×64 are not multiples of the spatial downsampling s=8"),
+@pytest.mark.parametrize("shape, message", [((1, 1, 4, 3, 36, 64),
+                                             r"36×64 are not multiples of the spatial downsampling s=8"),
                                             ((1, 4, 3, 32, 64), r"expects video \(b, v, T, 3, H, W\)"),
                                             ((1, 1, 4, 1, 32, 64), r"expects video \(b, v, T, 3, H, W\)")])
 def test_bad_shapes_name_what_was_expected(small: VideoTokenizer, shape: tuple[int, ...], message: str) -> None:

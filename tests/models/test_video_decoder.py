@@ -30,7 +30,8 @@ def tiny(**kw) -> VideoDecoder:
 
 
 def scramble(net: VideoDecoder, temporal: bool = True) -> VideoDecoder:
-    """Give the zero-initialised layers random weights, so tokens, time and (if `temporal`) other frames reach the output."""
+    """Give the zero-initialised layers random weights, so tokens, time and (if `temporal`) other frames reach the
+    output."""
     temporal_params = {id(p) for layer in net.temporal_layers() for p in layer.out.parameters()}
     with torch.no_grad():
         for p in net.parameters():
@@ -129,9 +130,12 @@ def test_checkpointing_gives_the_same_gradients() -> None:
         (lambda x: dict(x, x_t=torch.zeros(2, 8, 3, H, W)), r"t=8 frames; expected 1 ≤ t ≤ frames=7"),
         (lambda x: dict(x, x_t=torch.zeros(2, 7, 3, 18, W)), r"18×24; H and W must divide"),
         (lambda x: dict(x, x_t=torch.zeros(2, 7, H, W)), r"x_t must be \(b, t, 3, H, W\); got \(2, 7, 16, 24\)"),
-        (lambda x: dict(x, tokens=torch.zeros(2, 7, 6, 4, dtype=torch.long)), r"tokens has shape \(2, 7, 6, 4\); expected \(2, 7, 4, 6\)"),
-        (lambda x: dict(x, context=torch.zeros(2, 7, 3, H, 2 * W)), r"context has shape \(2, 7, 3, 16, 48\); expected \(2, 7, 3, 16, 24\)"),
-        (lambda x: dict(x, context_mask=torch.zeros(2, 6, dtype=torch.bool)), r"context_mask has shape \(2, 6\); expected \(2, 7\)"),
+        (lambda x: dict(x, tokens=torch.zeros(2, 7, 6, 4, dtype=torch.long)),
+         r"tokens has shape \(2, 7, 6, 4\); expected \(2, 7, 4, 6\)"),
+        (lambda x: dict(x, context=torch.zeros(2, 7, 3, H, 2 * W)),
+         r"context has shape \(2, 7, 3, 16, 48\); expected \(2, 7, 3, 16, 24\)"),
+        (lambda x: dict(x, context_mask=torch.zeros(2, 6, dtype=torch.bool)),
+         r"context_mask has shape \(2, 6\); expected \(2, 7\)"),
         (lambda x: dict(x, time=torch.zeros(1, dtype=torch.long)), r"time has shape \(1,\); expected \(2,\)"),
     ],
 )
@@ -186,8 +190,8 @@ def test_residual_decoder_samples_relative_to_the_rendered_tokens(residual: bool
     x["token_mask"][:, 5:] = False  # the last two frames are interpolated (no tokens)
     x["context_mask"][:, 0] = True
     rendered = torch.rand(1, 7, 3, H, W) * 1.6 - 0.8
-    out = sample_window(net, net.schedule, DDIMSampler(net.schedule, steps=5), x["tokens"], x["token_mask"], x["context"],
-                        x["context_mask"], rendered=rendered, generator=torch.Generator().manual_seed(0))
+    out = sample_window(net, net.schedule, DDIMSampler(net.schedule, steps=5), x["tokens"], x["token_mask"],
+                        x["context"], x["context_mask"], rendered=rendered, generator=torch.Generator().manual_seed(0))
     torch.testing.assert_close(out[:, 0], x["context"][:, 0])
     expected = rendered[:, 1:5] if residual else torch.zeros_like(rendered[:, 1:5])
     torch.testing.assert_close(out[:, 1:5], expected, atol=1e-5, rtol=0)

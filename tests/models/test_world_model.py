@@ -21,7 +21,8 @@ def tiny(**kw) -> WorldModel:
 
 def inputs(b: int = 2, t: int = T, seed: int = 1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     g = torch.Generator().manual_seed(seed)
-    return (torch.randint(0, V, (b, t, N), generator=g), torch.randn(b, t, M, E, generator=g), torch.randn(b, t, L, generator=g))
+    return (torch.randint(0, V, (b, t, N), generator=g), torch.randn(b, t, M, E, generator=g),
+            torch.randn(b, t, L, generator=g))
 
 
 def conditions(net: WorldModel, text, actions) -> Conditions:
@@ -80,7 +81,8 @@ def test_previous_frame_shortcut_adds_the_earlier_token_where_its_cell_is_predic
     cond = conditions(plain, text, actions)
     previous = torch.randint(0, V, (2, N))
     for prev in (None, previous):
-        diff = rearrange(net.embed(tokens, cond, previous=prev) - plain.embed(tokens, cond), "b (t s) d -> b t s d", t=T)
+        diff = rearrange(net.embed(tokens, cond, previous=prev) - plain.embed(tokens, cond), "b (t s) d -> b t s d",
+                         t=T)
         earlier = torch.cat([previous[:, None], tokens[:, :-1]], dim=1)
         expected = torch.zeros_like(diff)
         expected[:, :, M - 1 : M + N - 1] = net.token_embedding(earlier)  # slot m - 1 + i predicts z_{t,i}
@@ -168,7 +170,8 @@ def test_learns_a_tiny_batch() -> None:
     opt = torch.optim.AdamW(net.parameters(), lr=3e-3)
     first = None
     for _ in range(150):
-        loss = next_token_loss(net, tokens, net.conditioner(4, T, text, actions, force_drop={"text": False, "actions": False}))
+        loss = next_token_loss(net, tokens, net.conditioner(4, T, text, actions,
+                                                            force_drop={"text": False, "actions": False}))
         first = first if first is not None else loss.item()
         opt.zero_grad()
         loss.backward()

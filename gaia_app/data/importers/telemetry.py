@@ -24,8 +24,13 @@ from pathlib import Path
 
 import numpy as np
 
-from gaia_app.data.actions import (LABEL_RANGES, curvature_from_poses, curvature_from_steering,
-                                   curvature_from_yaw_rate, speed_from_poses)
+from gaia_app.data.actions import (
+    LABEL_RANGES,
+    curvature_from_poses,
+    curvature_from_steering,
+    curvature_from_yaw_rate,
+    speed_from_poses,
+)
 from gaia_app.data.clip import ClipError
 
 EARTH_RADIUS_M = 6_371_000.0
@@ -118,7 +123,8 @@ def sample_actions(log: Telemetry, wheelbase: float | None = None, steering_rati
     elif track is not None:
         curvature = curvature_from_poses(track, log.t)
     else:
-        raise ClipError(f"{log.path}: no curvature source: give 'curvature', 'yaw_rate', 'steering_angle' or 'lat'/'lon'")
+        raise ClipError(f"{log.path}: no curvature source: "
+                        "give 'curvature', 'yaw_rate', 'steering_angle' or 'lat'/'lon'")
     return np.stack([speed, curvature], axis=1)
 
 

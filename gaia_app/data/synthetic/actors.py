@@ -13,8 +13,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gaia_app.data.synthetic.geometry import (BACK, FRONT, LEFT, RIGHT, TOP, Decals, Mesh, Solids, Spheres, box_vertices,
-                                              decals, solids, spheres)
+from gaia_app.data.synthetic.geometry import (
+    BACK,
+    FRONT,
+    LEFT,
+    RIGHT,
+    TOP,
+    Decals,
+    Mesh,
+    Solids,
+    Spheres,
+    box_vertices,
+    decals,
+    solids,
+    spheres,
+)
 from gaia_app.data.synthetic.road import RoadLayout
 from gaia_app.data.synthetic.simulate import AgentPoses, FrameState
 from gaia_app.data.synthetic.world import BUS, CAR, CYCLIST, PEDESTRIAN, TRUCK, Agents
@@ -74,10 +87,12 @@ def _lights(parent: np.ndarray, v: tuple[float, float]) -> tuple[Decals, np.ndar
 
 
 def _wheels(parent: np.ndarray, v_top: float, spots) -> Decals:
-    return Decals.concat([decals(parent, face, [u0, 0.0, u1, v_top], TYRE) for face in (LEFT, RIGHT) for u0, u1 in spots])
+    return Decals.concat([decals(parent, face, [u0, 0.0, u1, v_top], TYRE)
+                          for face in (LEFT, RIGHT) for u0, u1 in spots])
 
 
-def _with_lights(mesh: Mesh, paint: list[Decals], lit_parent: np.ndarray, v: tuple[float, float]) -> tuple[Mesh, np.ndarray]:
+def _with_lights(mesh: Mesh, paint: list[Decals], lit_parent: np.ndarray,
+                 v: tuple[float, float]) -> tuple[Mesh, np.ndarray]:
     lamps, roles = _lights(lit_parent, v)
     painted = Decals.concat(paint)
     mesh.decals = Decals.concat([painted, lamps])
@@ -144,7 +159,8 @@ def cyclist_parts(a: Agents, idx: np.ndarray) -> Part:
                  np.tile([0.8, 0.85], (n, 1)), np.full(n, 0.12))
     head = np.c_[np.full(n, 0.05), np.zeros(n), size[:, 2] - 0.12]
     track = a.track_id[idx]
-    mesh = Mesh(solids(np.concatenate([bike, rider]), np.concatenate([np.tile([0.15, 0.15, 0.17], (n, 1)), a.colour[idx]]),
+    mesh = Mesh(solids(np.concatenate([bike, rider]),
+                       np.concatenate([np.tile([0.15, 0.15, 0.17], (n, 1)), a.colour[idx]]),
                        instance=np.r_[track, track]),
                 _wheels(np.arange(n), 0.75, ((0.0, 0.4), (0.6, 1.0))),
                 spheres(head, 0.12, SKIN[track % len(SKIN)], instance=track))
@@ -163,7 +179,8 @@ def pedestrian_parts(a: Agents, idx: np.ndarray) -> Part:
     head_r = (height - leg_h - torso_h) / 2
     mesh = Mesh(solids(np.concatenate(legs + [torso]), np.concatenate([trousers, trousers, a.colour[idx]]),
                        instance=np.r_[track, track, track]),
-                spheres=spheres(np.c_[np.zeros((n, 2)), height - head_r], head_r, SKIN[track % len(SKIN)], instance=track))
+                spheres=spheres(np.c_[np.zeros((n, 2)), height - head_r], head_r, SKIN[track % len(SKIN)],
+                                instance=track))
     return _part(mesh, np.r_[idx, idx, idx], idx, swing=np.r_[np.ones(n), -np.ones(n), np.zeros(n)])
 
 
@@ -171,14 +188,17 @@ class AgentMeshes:
     """All agent meshes of a clip in agent frames, posed per frame."""
 
     def __init__(self, agents: Agents, lights_on: bool):
-        of = lambda cat: np.flatnonzero(agents.category == cat)
+        def of(cat: int) -> np.ndarray:
+            return np.flatnonzero(agents.category == cat)
+
         parts = [car_parts(agents, of(CAR)), bus_parts(agents, of(BUS), lights_on), truck_parts(agents, of(TRUCK)),
                  cyclist_parts(agents, of(CYCLIST)), pedestrian_parts(agents, of(PEDESTRIAN))]
         self.mesh = Mesh.concat([p.mesh for p in parts])
         self.solid_owner = np.concatenate([p.solid_owner for p in parts])
         self.sphere_owner = np.concatenate([p.sphere_owner for p in parts])
         self.swing = np.concatenate([p.swing for p in parts])
-        self.role = np.concatenate([p.role for p in parts if len(p.mesh.solids) or len(p.mesh.spheres)] or [np.zeros(0)])
+        self.role = np.concatenate([p.role for p in parts if len(p.mesh.solids) or len(p.mesh.spheres)]
+                                   or [np.zeros(0)])
         self.lights_on = lights_on
 
     def posed(self, poses: AgentPoses, t: float, near: np.ndarray) -> Mesh:
@@ -229,7 +249,8 @@ def traffic_lights(layout: RoadLayout, state: FrameState, near_junctions: list[i
         if state.lights[j] is None:
             continue
         for s, side, facing in ((site.stop_s, geo.drive_sign, 0.0), (site.s_exit + 1.0, geo.drive_sign, 0.0),
-                                (site.stop_s_oncoming, -geo.drive_sign, np.pi), (site.s_entry - 1.0, -geo.drive_sign, np.pi)):
+                                (site.stop_s_oncoming, -geo.drive_sign, np.pi),
+                                (site.s_entry - 1.0, -geo.drive_sign, np.pi)):
             # A head faces the traffic it controls: own traffic heads along the path, oncoming against it.
             bases.append(path.offset(np.array(s), np.array(side * kerb)))
             yaws.append(float(path.heading_at(s)) + facing + np.pi)

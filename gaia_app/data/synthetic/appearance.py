@@ -78,13 +78,16 @@ def _sun(rng: np.random.Generator, elevation_deg: float) -> np.ndarray:
 
 
 def _base_palette(rng: np.random.Generator, environment: str) -> dict[str, np.ndarray]:
-    jitter = lambda c, a=0.04: np.clip(np.asarray(c) + rng.uniform(-a, a, 3) + rng.uniform(-a, a), 0, 1)
+    def jitter(c, a: float = 0.04) -> np.ndarray:
+        return np.clip(np.asarray(c) + rng.uniform(-a, a, 3) + rng.uniform(-a, a), 0, 1)
+
     grey = rng.uniform(0.24, 0.36)
     grass = [[0.26, 0.42, 0.17], [0.34, 0.44, 0.2], [0.42, 0.44, 0.24], [0.22, 0.36, 0.16]][rng.integers(0, 4)]
     ground = [0.46, 0.44, 0.41] if environment == "urban" else grass
     return {
         "ground": jitter(ground), "grass": jitter(grass), "grass_dark": jitter(np.array(grass) * 0.8),
-        "asphalt": jitter([grey, grey, grey * 1.04], 0.02), "patch": jitter([grey * 0.8, grey * 0.8, grey * 0.82], 0.02),
+        "asphalt": jitter([grey, grey, grey * 1.04], 0.02),
+        "patch": jitter([grey * 0.8, grey * 0.8, grey * 0.82], 0.02),
         "crack": np.array([grey * 0.55, grey * 0.55, grey * 0.56]),
         "shoulder": jitter([grey * 1.1, grey * 1.1, grey * 1.1], 0.02),
         "sidewalk": jitter([0.58, 0.56, 0.52]), "kerb": jitter([0.7, 0.7, 0.68], 0.03),

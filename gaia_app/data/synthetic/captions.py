@@ -55,7 +55,8 @@ class Captioner:
     def __init__(self, rng: np.random.Generator, setting: Setting):
         self.setting = setting
         self.choice = {key: int(rng.integers(0, len(options))) for key, options in PHRASES.items()}
-        self.order = list(rng.permutation(["road", "motion", "light", "lead", "junction", "crossing", "limit", "lanes"]))
+        self.order = list(rng.permutation(["road", "motion", "light", "lead", "junction", "crossing", "limit",
+                                           "lanes"]))
         self.optional = {name: bool(rng.random() < 0.5) for name in ("road", "limit", "lanes")}
         self.mph = COUNTRIES[setting.country].speed_unit == "mph"
 
@@ -76,7 +77,8 @@ class Captioner:
             "motion": self.phrase(meta["manoeuvre"], speed=self.speed_text(state.speed)),
             "light": self.phrase("light", state=meta["traffic_light"]) if meta["traffic_light"] else None,
             "lead": self._lead(meta["lead_agent"]),
-            "junction": self.phrase("intersection") if meta["intersection"] and meta["intersection_distance"] < 60 else None,
+            "junction": (self.phrase("intersection") if meta["intersection"] and meta["intersection_distance"] < 60
+                         else None),
             "crossing": self._crossing(meta),
             "limit": self.phrase("limit", limit=f"{setting.speed_sign} {'mph' if self.mph else 'km/h'}")
             if self.optional["limit"] else None,

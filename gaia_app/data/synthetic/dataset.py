@@ -20,9 +20,8 @@ from gaia_app.data.synthetic.generate import SyntheticSample, WorldConfig, clip_
 from gaia_app.data.synthetic.labels import frame_meta
 from gaia_app.data.synthetic.planning import ScenePlan, make_plan
 from gaia_app.data.synthetic.scenario import Scenario, draw_setting
-from gaia_app.data.transforms import resample_indices
 from gaia_app.data.synthetic.simulate import FrameState, simulate
-
+from gaia_app.data.transforms import resample_indices
 
 # stream of the per-clip generator that decides whether (and how) clip i is driven open-loop
 OPEN_LOOP_STREAM = 7
@@ -62,7 +61,8 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
         self.render_rate = None if render_rate is None else float(render_rate)
         self.open_loop_acceleration = check_acceleration_range(open_loop_acceleration)
         cameras = cameras if isinstance(cameras, (int, np.integer)) else list(cameras)  # Hydra passes ListConfig
-        self.config = WorldConfig.make(height, width, cameras, clip_len, fps, weather_mix, time_of_day_mix, agent_density)
+        self.config = WorldConfig.make(height, width, cameras, clip_len, fps, weather_mix, time_of_day_mix,
+                                       agent_density)
 
     def __len__(self) -> int:
         return self.num_clips

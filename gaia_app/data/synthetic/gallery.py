@@ -20,9 +20,10 @@ from gaia_app.data.synthetic.generate import generate_clip
 from gaia_app.data.synthetic.scenario import Scenario
 
 GALLERY_ROWS = (
-    ("urban", "clear", "day", "follow"), ("suburban", "clear", "dusk", "turn"), ("highway", "rain", "day", "lane_change"),
-    ("rural", "fog", "day", "cruise"), ("urban", "snow", "day", "brake"), ("urban", "clear", "night", "cruise"),
-    ("highway", "clear", "dusk", "follow"), ("suburban", "rain", "night", "accelerate"),
+    ("urban", "clear", "day", "follow"), ("suburban", "clear", "dusk", "turn"),
+    ("highway", "rain", "day", "lane_change"), ("rural", "fog", "day", "cruise"), ("urban", "snow", "day", "brake"),
+    ("urban", "clear", "night", "cruise"), ("highway", "clear", "dusk", "follow"),
+    ("suburban", "rain", "night", "accelerate"),
 )
 """(environment, weather, time of day, behaviour) of each gallery row."""
 

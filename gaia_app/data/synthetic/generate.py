@@ -36,7 +36,8 @@ def _check_mix(name: str, mix: Mapping[str, float] | None, allowed: tuple[str, .
     out = {str(k): float(v) for k, v in mix.items()}
     unknown = sorted(set(out) - set(allowed))
     if unknown or not out or any(v < 0 for v in out.values()) or sum(out.values()) <= 0:
-        raise ValueError(f"{name}: expected non-negative probabilities over {allowed} with a positive sum, got {dict(mix)}")
+        raise ValueError(f"{name}: expected non-negative probabilities over {allowed} with a positive sum, "
+                         f"got {dict(mix)}")
     return out
 
 
@@ -151,7 +152,8 @@ def clip_meta(plan: ScenePlan, first: dict[str, Any], extra: dict[str, Any]) -> 
             "drive_side": "right" if geo.drive_sign < 0 else "left", "speed_limit": setting.speed_limit,
             "speed_sign": setting.speed_sign, "lanes": geo.lanes, "lane_types": list(setting.lane_types),
             "lane_width": round(geo.lane_width, 3), "behaviour": plan.ego_plan.behaviour,
-            "traffic_light": first["traffic_light"], "intersection": first["intersection"], "crossing": first["crossing"]}
+            "traffic_light": first["traffic_light"], "intersection": first["intersection"],
+            "crossing": first["crossing"]}
 
 
 def generate_sample(seed: int = 0, *, height: int = 64, width: int = 112, cameras: int | Sequence[str] = ("front",),

@@ -176,7 +176,8 @@ def asphalt_texture(rng: np.random.Generator, layout: RoadLayout) -> list[PolyGr
     return [PolyGroup(points, colour) for colour, points in groups.items() if points]
 
 
-def lane_line(layout: RoadLayout, d: float, kind: str, colour: str, dash: tuple[float, float]) -> list[Ribbon | PolyGroup]:
+def lane_line(layout: RoadLayout, d: float, kind: str, colour: str,
+              dash: tuple[float, float]) -> list[Ribbon | PolyGroup]:
     """A lane boundary at offset d: solid ribbon(s), or dashes."""
     runs = layout.runs(with_crossings=True)
     path = layout.path
@@ -211,7 +212,8 @@ def markings(setting: Setting, layout: RoadLayout) -> list[Ribbon | PolyGroup]:
         items.append(PolyGroup(stops, "white"))
     stripe_d = np.arange(-geo.edge + 0.25, geo.edge - 0.2, 1.0)  # 0.5 m stripes, 0.5 m gaps
     stripes = [q for c in layout.crossings
-               for q in quads(path, c - CROSSING_HALF_LENGTH + 0.25, c + CROSSING_HALF_LENGTH - 0.25, stripe_d, stripe_d + 0.5)]
+               for q in quads(path, c - CROSSING_HALF_LENGTH + 0.25, c + CROSSING_HALF_LENGTH - 0.25, stripe_d,
+                              stripe_d + 0.5)]
     if stripes:
         items.append(PolyGroup(stripes, "white"))
     return items
@@ -222,7 +224,8 @@ def build_ground(rng: np.random.Generator, setting: Setting, layout: RoadLayout)
     inner, kerb = _sides(layout)
     path = layout.path
     whole = [(0.0, path.length)]
-    items: list[Ribbon | PolyGroup] = list(verge_texture(rng, layout, kerb + (SIDEWALK_WIDTH if setting.sidewalk else 0.3)))
+    items: list[Ribbon | PolyGroup] = list(verge_texture(rng, layout,
+                                                         kerb + (SIDEWALK_WIDTH if setting.sidewalk else 0.3)))
     if setting.sidewalk:
         items += sidewalks(layout)
     items.append(ribbon(path, whole, -inner, inner, "asphalt"))

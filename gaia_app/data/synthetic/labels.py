@@ -123,7 +123,8 @@ def boxes_2d(renderer: CameraRenderer, world: World, cam_from_world: np.ndarray,
     hi = np.minimum(hi, [renderer.w, renderer.h])
     out = []
     for i in np.flatnonzero((hi[:, 0] > lo[:, 0]) & (hi[:, 1] > lo[:, 1])):
-        out.append({"track_id": int(world.agents.track_id[i]), "category": AGENT_CATEGORIES[int(world.agents.category[i])],
+        out.append({"track_id": int(world.agents.track_id[i]),
+                    "category": AGENT_CATEGORIES[int(world.agents.category[i])],
                     "box": [round(float(v), 2) for v in (*lo[i], *hi[i])]})
     return out
 

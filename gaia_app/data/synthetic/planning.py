@@ -13,11 +13,27 @@ from dataclasses import dataclass
 import numpy as np
 
 from gaia_app.data.synthetic.policy import EgoDriver, EgoPlan
-from gaia_app.data.synthetic.road import (CORNER_MARGIN, Curve, Junction, LaneGeometry, Path, RoadLayout, Segment,
-                                          Straight, build_layout)
+from gaia_app.data.synthetic.road import (
+    CORNER_MARGIN,
+    Curve,
+    Junction,
+    LaneGeometry,
+    Path,
+    RoadLayout,
+    Segment,
+    Straight,
+    build_layout,
+)
 from gaia_app.data.synthetic.scenario import EGO_START, TRAFFIC_MIX, Scenario, Setting
-from gaia_app.data.synthetic.traffic import (AgentSpec, make_agents, place_specs, spawn_cross_traffic,
-                                             spawn_lane_traffic, spawn_parked, spawn_pedestrians)
+from gaia_app.data.synthetic.traffic import (
+    AgentSpec,
+    make_agents,
+    place_specs,
+    spawn_cross_traffic,
+    spawn_lane_traffic,
+    spawn_parked,
+    spawn_pedestrians,
+)
 from gaia_app.data.synthetic.world import Agents, CrossRoad, Ego, LightCycle, World
 
 BEHAVIOUR_P = {"cruise": 0.24, "follow": 0.2, "accelerate": 0.12, "brake": 0.14, "turn": 0.16, "lane_change": 0.14}
@@ -168,7 +184,8 @@ def ego_plan(rng: np.random.Generator, setting: Setting, behaviour: str, scenari
     elif behaviour == "follow":
         v0 = plan.v_desired * rng.uniform(0.5, 0.95)
     elif behaviour == "lane_change" and geo.lanes >= 2:
-        plan.change_to = lane + 1 if lane == 0 else lane - 1 if lane == geo.lanes - 1 else lane + int(rng.choice([-1, 1]))
+        plan.change_to = (lane + 1 if lane == 0 else lane - 1 if lane == geo.lanes - 1
+                          else lane + int(rng.choice([-1, 1])))
         plan.change_len = rng.uniform(3.0, 5.0)
         plan.change_t0 = rng.uniform(-0.8 * plan.change_len, max(duration, 0.1))
     if scenario.ego_speed is not None:
@@ -221,7 +238,8 @@ def _traffic(rng: np.random.Generator, setting: Setting, scenario: Scenario, lay
         corridors.append((EGO_START - 25.0, corridor_end, float(geo.lane_offset(plan.change_to))))
     parts = []
     if plan.behaviour == "follow" and plan.actions is None:
-        lead = AgentSpec(str(rng.choice(LEAD_CATEGORIES)), gap=rng.uniform(6.0, 35.0), speed=v0 + rng.uniform(-1.5, 1.0))
+        lead = AgentSpec(str(rng.choice(LEAD_CATEGORIES)), gap=rng.uniform(6.0, 35.0),
+                         speed=v0 + rng.uniform(-1.5, 1.0))
         parts.append(place_specs(rng, [lead], layout, EGO_START, Ego.front, plan.lane, 0))
         corridors[0] = (corridors[0][0], EGO_START + lead.gap + 8.0, corridors[0][2])
     limit = setting.speed_limit / 3.6

@@ -52,7 +52,8 @@ def smoothstep(u: np.ndarray | float) -> np.ndarray | float:
     return 3 * u * u - 2 * u ** 3
 
 
-def integrate_pose(x: float, y: float, yaw: float, speed: float, curvature: float, dt: float) -> tuple[float, float, float]:
+def integrate_pose(x: float, y: float, yaw: float, speed: float, curvature: float,
+                   dt: float) -> tuple[float, float, float]:
     """Pose after driving `dt` s at constant speed and curvature (an exact circular arc)."""
     arc = speed * dt
     turn = arc * curvature

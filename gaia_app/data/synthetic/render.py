@@ -61,8 +61,8 @@ class FrameGeometry:
 
     ego_from_world: (4, 4); ground: (polygons, albedo) groups in draw order, each a list of
     non-overlapping (k, 3) world polygons with one (3,) colour in 0..1; mesh: solids/decals/spheres
-    with shaded colours face_colour (B, 6, 3), decal_colour (D, 3), sphere_colour (S, 3) in 0..1; face_normal / face_centre (B, 6, 3) world;
-    decal_quads (D, 4, 3) world.
+    with shaded colours face_colour (B, 6, 3), decal_colour (D, 3), sphere_colour (S, 3) in 0..1; face_normal /
+    face_centre (B, 6, 3) world; decal_quads (D, 4, 3) world.
     """
 
     ego_from_world: np.ndarray
@@ -131,8 +131,8 @@ class CameraRenderer:
         self.fx, self.fy, self.cx, self.cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
         # Frustum planes through the camera centre (inward normals) plus the near plane, 1 px margin.
         w, h, cx, cy = self.w + 1, self.h + 1, self.cx, self.cy
-        self.planes = np.array([[self.fx, 0, cx + 1], [-self.fx, 0, w - cx], [0, self.fy, cy + 1], [0, -self.fy, h - cy],
-                                [0, 0, 1.0]])
+        self.planes = np.array([[self.fx, 0, cx + 1], [-self.fx, 0, w - cx], [0, self.fy, cy + 1],
+                                [0, -self.fy, h - cy], [0, 0, 1.0]])
         self.plane_offset = np.array([0, 0, 0, 0, -NEAR])
         self.rays_ego = self._pixel_rays()
         self.horizon_row = self._horizon_row()
@@ -293,7 +293,8 @@ class CameraRenderer:
         kinds = np.r_[np.zeros(len(fb), np.int64), np.ones(len(decal_idx), np.int64), np.full(len(discs), 2)]
         index = np.r_[np.arange(len(fb)), np.arange(len(decal_idx)), np.arange(len(discs))]
         order = np.argsort(keys, kind="stable")
-        return (polys, face_colours), (decal_polys, decal_colours), discs, zip(kinds[order].tolist(), index[order].tolist())
+        return ((polys, face_colours), (decal_polys, decal_colours), discs,
+                zip(kinds[order].tolist(), index[order].tolist()))
 
     def _fogged(self, colour: np.ndarray, distance: np.ndarray) -> list:
         """Colours (n, 3) seen through fog at (n,) metres, as OpenCV 0..255 lists."""

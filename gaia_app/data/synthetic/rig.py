@@ -46,7 +46,8 @@ def resolve_camera_names(cameras: int | Sequence[str]) -> list[str]:
             raise ValueError(f"cameras: a count must be 1..{len(DEFAULT_CAMERA_NAMES)}, got {cameras}")
         return list(DEFAULT_CAMERA_NAMES[: int(cameras)])
     if isinstance(cameras, str) or not isinstance(cameras, Sequence):
-        raise ValueError(f"cameras: expected an int 1..5 or a list of names from {DEFAULT_CAMERA_NAMES}, got {cameras!r}")
+        raise ValueError(f"cameras: expected an int 1..5 or a list of names from {DEFAULT_CAMERA_NAMES}, "
+                         f"got {cameras!r}")
     names = [str(c) for c in cameras]
     unknown = [n for n in names if n not in DEFAULT_MOUNTS]
     if not names or unknown or len(set(names)) != len(names):
@@ -71,7 +72,8 @@ def camera_spec(name: str, height: int, width: int, mount: CameraMount | None = 
     mount = mount or DEFAULT_MOUNTS[name]
     fx = 0.5 * width / np.tan(np.radians(mount.hfov_deg) / 2)
     intrinsics = np.array([[fx, 0.0, width / 2], [0.0, fx, height / 2], [0.0, 0.0, 1.0]])
-    rotation = rotation_z(np.radians(mount.yaw_deg)) @ rotation_y(np.radians(mount.pitch_deg)) @ _EGO_FROM_FORWARD_CAMERA
+    rotation = (rotation_z(np.radians(mount.yaw_deg)) @ rotation_y(np.radians(mount.pitch_deg))
+                @ _EGO_FROM_FORWARD_CAMERA)
     extrinsics = np.eye(4)
     extrinsics[:3, :3] = rotation
     extrinsics[:3, 3] = mount.position

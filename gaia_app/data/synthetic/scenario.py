@@ -134,7 +134,8 @@ def draw_setting(rng: np.random.Generator, scenario: Scenario, weather_mix: Mapp
     parking = env in ("urban", "suburban") and rng.random() < 0.6
     shoulder = {"urban": 2.2 if parking else 0.3, "suburban": 2.2 if parking else 0.5,
                 "rural": rng.uniform(0.4, 1.0), "highway": rng.uniform(2.0, 3.0)}[env]
-    geometry = LaneGeometry(lanes=lanes, lane_width=rng.uniform(3.0, 3.5) if env != "highway" else rng.uniform(3.5, 3.75),
+    geometry = LaneGeometry(lanes=lanes,
+                            lane_width=rng.uniform(3.0, 3.5) if env != "highway" else rng.uniform(3.5, 3.75),
                             median=rng.uniform(3.0, 8.0) if env == "highway" else 0.0, shoulder=shoulder,
                             drive_sign=country.drive_sign)
     signs = SPEED_LIMITS[env][1 if country.speed_unit == "mph" else 0]

@@ -14,8 +14,8 @@ from gaia_app.data.clip import CameraSpec
 from gaia_app.data.synthetic.actors import AgentMeshes, traffic_lights
 from gaia_app.data.synthetic.appearance import Appearance
 from gaia_app.data.synthetic.geometry import Mesh
-from gaia_app.data.synthetic.labels import boxes_2d
 from gaia_app.data.synthetic.ground import build_ground
+from gaia_app.data.synthetic.labels import boxes_2d
 from gaia_app.data.synthetic.planning import ScenePlan
 from gaia_app.data.synthetic.render import CameraRenderer, FrameGeometry, shade_mesh
 from gaia_app.data.synthetic.scenery import build_scenery
@@ -53,7 +53,8 @@ class ClipRenderer:
         self.plan, self.appearance = plan, appearance
         rng = np.random.default_rng(plan.appearance_seed)
         self.ground = build_ground(rng, plan.setting, plan.layout)
-        self.scenery = build_scenery(rng, plan.setting, plan.layout, appearance.lights_on) if plan.roadside else Mesh.empty()
+        self.scenery = (build_scenery(rng, plan.setting, plan.layout, appearance.lights_on) if plan.roadside
+                        else Mesh.empty())
         self.solid_centre, self.solid_radius, self.sphere_centre, self.sphere_radius = _mesh_bounds(self.scenery)
         self.sky = make_sky(rng, appearance, plan.setting.environment)
         self.agent_meshes = AgentMeshes(plan.world.agents, appearance.lights_on)
@@ -66,12 +67,17 @@ class ClipRenderer:
     def geometry(self, state: FrameState) -> FrameGeometry:
         """Shaded drawables near the ego at one frame."""
         ego_xy = np.array([state.ego.x, state.ego.y])
-        near = lambda centre, radius: np.linalg.norm(centre - ego_xy, axis=1) < VIEW_RADIUS + radius
+
+        def near(centre: np.ndarray, radius: np.ndarray) -> np.ndarray:
+            return np.linalg.norm(centre - ego_xy, axis=1) < VIEW_RADIUS + radius
+
         world = self.plan.world
         agents_near = near(state.agents.xy, np.zeros(len(world.agents)))
-        junctions = [j for j, site in enumerate(world.layout.junctions) if np.linalg.norm(site.centre - ego_xy) < VIEW_RADIUS]
+        junctions = [j for j, site in enumerate(world.layout.junctions)
+                     if np.linalg.norm(site.centre - ego_xy) < VIEW_RADIUS]
         mesh = Mesh.concat([
-            self.scenery.select(near(self.solid_centre, self.solid_radius), near(self.sphere_centre, self.sphere_radius)),
+            self.scenery.select(near(self.solid_centre, self.solid_radius),
+                                near(self.sphere_centre, self.sphere_radius)),
             self.agent_meshes.posed(state.agents, state.t, agents_near),
             traffic_lights(world.layout, state, junctions)])
         ego_from_world = np.linalg.inv(world_from_ego(state))
@@ -81,9 +87,10 @@ class ClipRenderer:
         shadows = self._shadows(state, agents_near)
         if shadows:
             ground.append((shadows, palette["asphalt"] * 0.55))
-        face_colour, normal, centre, quads, decal_colour, sphere_colour = shade_mesh(mesh, self.appearance, ego_from_world)
-        return FrameGeometry(ego_from_world, ground, mesh, face_colour, normal, centre, quads, decal_colour, sphere_colour,
-                             self._light_pools(ego_xy))
+        face_colour, normal, centre, quads, decal_colour, sphere_colour = shade_mesh(mesh, self.appearance,
+                                                                                     ego_from_world)
+        return FrameGeometry(ego_from_world, ground, mesh, face_colour, normal, centre, quads, decal_colour,
+                             sphere_colour, self._light_pools(ego_xy))
 
     def _light_pools(self, ego_xy: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
         """Three rings of light on the ground under each street lamp within 90 m."""
@@ -162,7 +169,8 @@ def draw_precipitation(img: np.ndarray, appearance: Appearance, rng: np.random.G
         slant = 0.15 + 0.01 * ego_speed * np.sign(camera.extrinsics[1, 2] + 1e-9)
         lines = np.stack([np.c_[x, y], np.c_[x + slant * length, y + length]], axis=1)
         colour = (np.clip(appearance.sky_horizon * 1.25 + 0.1, 0, 1) * 255).tolist()
-        cv2.polylines(overlay, list(np.round(lines * 16).astype(np.int32)), False, colour, max(1, h // 320), cv2.LINE_AA, 4)
+        cv2.polylines(overlay, list(np.round(lines * 16).astype(np.int32)), False, colour, max(1, h // 320),
+                      cv2.LINE_AA, 4)
         alpha = 0.3
     else:
         n = int(0.0015 * h * w) + 4

@@ -6,7 +6,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from gaia_app.data.synthetic.geometry import BACK, FRONT, LEFT, RIGHT, Decals, Mesh, box_vertices, decals, solids, spheres
+from gaia_app.data.synthetic.geometry import (
+    BACK,
+    FRONT,
+    LEFT,
+    RIGHT,
+    Decals,
+    Mesh,
+    box_vertices,
+    decals,
+    solids,
+    spheres,
+)
 from gaia_app.data.synthetic.planning import KERB_WIDTH, SIDEWALK_WIDTH
 from gaia_app.data.synthetic.road import RoadLayout
 from gaia_app.data.synthetic.scenario import COUNTRIES, EGO_START, Setting
@@ -111,7 +122,8 @@ def buildings(rng: np.random.Generator, setting: Setting, layout: RoadLayout, li
     front = _roadside(setting, layout)
     rows = _building_rows(rng, setting, 0.0, layout.path.length, front,
                           lambda a, b: bool(_free(layout, np.array([a, b]), 16.0).all()))
-    base, yaw = (_frame_at(layout, [r[0] for r in rows], [r[1] for r in rows]) if rows else (np.zeros((0, 3)), np.zeros(0)))
+    base, yaw = (_frame_at(layout, [r[0] for r in rows], [r[1] for r in rows]) if rows
+                 else (np.zeros((0, 3)), np.zeros(0)))
     if setting.environment in ("urban", "suburban"):
         arm_bases, arm_yaws, arm_rows = _arm_rows(rng, setting, layout, front)
         if arm_rows:
@@ -160,7 +172,8 @@ def trees(rng: np.random.Generator, setting: Setting, layout: RoadLayout, snowy:
     trunk_h = rng.uniform(1.5, 3.0, n)
     crown_r = rng.uniform(1.4, 3.2, n)
     conifer = rng.random(n) < (0.1 if env in ("urban", "suburban") else 0.4)
-    trunk = solids(box_vertices(base, rng.uniform(0, np.pi, n), np.c_[np.full(n, 0.3), np.full(n, 0.3), trunk_h + crown_r]),
+    trunk = solids(box_vertices(base, rng.uniform(0, np.pi, n),
+                                np.c_[np.full(n, 0.3), np.full(n, 0.3), trunk_h + crown_r]),
                    TRUNK * rng.uniform(0.8, 1.2, (n, 1)))
     centres, radii, colours = [], [], []
     leaf = LEAVES[rng.integers(0, len(LEAVES), n)] * rng.uniform(0.85, 1.15, (n, 1))
@@ -171,7 +184,8 @@ def trees(rng: np.random.Generator, setting: Setting, layout: RoadLayout, snowy:
         r = crown_r * shrink
         up = np.where(conifer, trunk_h + crown_r * (0.6 + 0.9 * k), trunk_h + crown_r * rng.uniform(0.7, 1.3, n))
         jitter = np.where(conifer[:, None], 0.0, rng.uniform(-0.6, 0.6, (n, 2)) * crown_r[:, None])
-        centres.append(base + np.c_[jitter, up]); radii.append(r)
+        centres.append(base + np.c_[jitter, up])
+        radii.append(r)
         colours.append(np.clip(leaf * rng.uniform(0.8, 1.2, (n, 1)), 0, 1))
     crowns = spheres(np.concatenate(centres), np.concatenate(radii), np.concatenate(colours))
     return Mesh(trunk, spheres=crowns)

@@ -87,7 +87,8 @@ def simulate(plan: ScenePlan, clip_len: int, fps: float) -> list[FrameState]:
         speed, curvature = driver.action(i, t, ego)
         next_speed = driver.next_speed(i, t, ego, dt)
         frames.append(FrameState(
-            t, replace(ego), speed, curvature, (next_speed - speed) / dt, driver.lane_changing(t), agent_poses(world, t),
+            t, replace(ego), speed, curvature, (next_speed - speed) / dt, driver.lane_changing(t),
+            agent_poses(world, t),
             [world.light_state(j, t) for j in range(len(world.lights))],
             [world.light_state(j, t, cross=True) for j in range(len(world.lights))]))
         for k in range(substeps):

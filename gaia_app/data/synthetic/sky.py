@@ -34,7 +34,8 @@ class Sky:
 def _hills(rng: np.random.Generator, base: float, amplitude: float, waves: int) -> np.ndarray:
     az = np.linspace(0, 2 * np.pi, PROFILE_BINS, endpoint=False)
     k = rng.integers(1, waves + 1, 6)
-    profile = base + sum(amplitude * rng.uniform(0.3, 1.0) * np.sin(ki * az + rng.uniform(0, 2 * np.pi)) for ki in k) / 3
+    profile = base + sum(amplitude * rng.uniform(0.3, 1.0) * np.sin(ki * az + rng.uniform(0, 2 * np.pi))
+                         for ki in k) / 3
     return np.maximum(profile, 0.15)
 
 
@@ -56,7 +57,10 @@ def _city(rng: np.random.Generator) -> np.ndarray:
 def make_sky(rng: np.random.Generator, appearance: Appearance, environment: str) -> Sky:
     """The sky of one clip for its appearance and environment."""
     haze = appearance.sky_horizon
-    mix = lambda colour, amount: np.asarray(colour) * (1 - amount) + haze * amount
+
+    def mix(colour, amount: float) -> np.ndarray:
+        return np.asarray(colour) * (1 - amount) + haze * amount
+
     visible = 0.0 if appearance.visibility < 100 else 1.0  # fog hides every skyline
     dark = 0.25 if appearance.time_of_day == "night" else 1.0
     skylines = [(_hills(rng, 1.2, 2.5, 4), mix(np.array([0.35, 0.42, 0.45]) * dark, 0.55))]
@@ -78,7 +82,8 @@ def make_sky(rng: np.random.Generator, appearance: Appearance, environment: str)
                           h * rng.uniform(0.6, 1.0)])
             brightness = shade * rng.uniform(0.9, 1.0) * (0.95 if appearance.time_of_day == "day" else 0.7)
             colours.append(np.clip(tint * brightness, 0, 1))
-    clear_night = appearance.time_of_day == "night" and appearance.precipitation == "none" and appearance.visibility > 100
+    clear_night = (appearance.time_of_day == "night" and appearance.precipitation == "none"
+                   and appearance.visibility > 100)
     stars = np.c_[rng.uniform(0, 360, 90), rng.uniform(4, 70, 90), rng.uniform(0.3, 0.9, 90)]
     stars = stars if clear_night else np.zeros((0, 3))
     overcast = appearance.weather != "clear"
@@ -110,7 +115,8 @@ def draw_sky(img: np.ndarray, renderer: CameraRenderer, sky: Sky, cam_from_world
     for a, e, b in sky.stars:
         cam = rot @ _directions(np.array(a), np.array(e))
         if cam[2] > 0.1:
-            cv2.circle(img, tuple(renderer.project(cam).tolist()), 1 << (SHIFT - 1), (255 * b,) * 3, -1, cv2.LINE_AA, SHIFT)
+            cv2.circle(img, tuple(renderer.project(cam).tolist()), 1 << (SHIFT - 1), (255 * b,) * 3, -1, cv2.LINE_AA,
+                       SHIFT)
     if sky.sun is not None:
         _draw_glow(img, renderer, sky, rot @ sky.sun)
 

@@ -109,7 +109,10 @@ def spawn_lane_traffic(rng: np.random.Generator, layout: RoadLayout, window: tup
                 d = d_lane + np.sign(d_lane) * (geo.lane_width / 2 - 0.8) if cat == CYCLIST else d_lane
                 in_corridor = any(lo - 8 < s < hi + 8 and abs(d - dc) < 1.5 for lo, hi, dc in keep_clear)
                 if not in_corridor and not layout.in_junction(np.array(s)):
-                    cats.append(cat); dirs.append(-1 if oncoming else 1); ss.append(s); ds.append(d)
+                    cats.append(cat)
+                    dirs.append(-1 if oncoming else 1)
+                    ss.append(s)
+                    ds.append(d)
                     vs.append(rng.uniform(4.0, 6.5) if cat == CYCLIST else speed * rng.uniform(0.9, 1.05))
                 s += 14.0 + 1.5 * speed + rng.exponential(45.0 / density)
     return dict(category=cats, path=np.zeros(len(cats)), direction=dirs, s=ss, d=ds, v_desired=vs)
@@ -150,8 +153,11 @@ def spawn_pedestrians(rng: np.random.Generator, layout: RoadLayout, window: tupl
             continue
         for _ in range(rng.integers(0, 4)):
             way = int(rng.choice([-1, 1]))
-            s.append(c + rng.uniform(-1.2, 1.2)); d.append(-way * far); dirs.append(way)
-            crosser.append(True); t0.append(rng.uniform(-4.0, duration + 2.0))
+            s.append(c + rng.uniform(-1.2, 1.2))
+            d.append(-way * far)
+            dirs.append(way)
+            crosser.append(True)
+            t0.append(rng.uniform(-4.0, duration + 2.0))
     n = len(s)
     # A crosser already under way at t=0 starts part-way over the road.
     for i in range(n_walk, n):
@@ -161,7 +167,8 @@ def spawn_pedestrians(rng: np.random.Generator, layout: RoadLayout, window: tupl
                 v_desired=rng.uniform(1.0, 1.6, n), crosser=crosser, cross_t0=t0)
 
 
-def spawn_cross_traffic(rng: np.random.Generator, cross_roads: list[CrossRoad], layout: RoadLayout, density: float) -> dict:
+def spawn_cross_traffic(rng: np.random.Generator, cross_roads: list[CrossRoad], layout: RoadLayout,
+                        density: float) -> dict:
     """A few cars on each direction of every cross road (they obey the cross phase)."""
     geo = layout.geometry
     cats, paths, dirs, ss, ds, vs = [], [], [], [], [], []
@@ -172,7 +179,8 @@ def spawn_cross_traffic(rng: np.random.Generator, cross_roads: list[CrossRoad], 
             for _ in range(rng.poisson(2.0 * density)):
                 offset += rng.uniform(7.0, 30.0)
                 cats.append(int(rng.choice([CAR, CAR, CAR, TRUCK, BUS])))
-                paths.append(k + 1); dirs.append(direction)
+                paths.append(k + 1)
+                dirs.append(direction)
                 ss.append(road.centre_s - direction * offset)
                 ds.append(float(geo.lane_offset(0, direction < 0)))
                 vs.append(rng.uniform(8.0, 13.0))
@@ -190,7 +198,9 @@ def place_specs(rng: np.random.Generator, specs: list[AgentSpec], layout: RoadLa
         if not 0 <= lane < geo.lanes:
             raise ValueError(f"AgentSpec.lane: expected 0..{geo.lanes - 1}, got {lane}")
         cat = AGENT_CATEGORIES.index(spec.category)
-        cats.append(cat); dirs.append(-1 if spec.oncoming else 1); parked.append(spec.parked)
+        cats.append(cat)
+        dirs.append(-1 if spec.oncoming else 1)
+        parked.append(spec.parked)
         ds.append(float(geo.lane_offset(lane, spec.oncoming)) if spec.d is None else spec.d)
         default_speed = 1.3 if cat == PEDESTRIAN else 5.0 if cat == CYCLIST else 12.0
         vs.append(0.0 if spec.parked else default_speed if spec.speed is None else spec.speed)

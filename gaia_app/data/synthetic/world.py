@@ -16,7 +16,8 @@ import numpy as np
 from gaia_app.data.clip import AGENT_CATEGORIES
 from gaia_app.data.synthetic.road import CROSSING_HALF_LENGTH, LaneGeometry, Path, RoadLayout
 
-CAR, BUS, TRUCK, CYCLIST, PEDESTRIAN = (AGENT_CATEGORIES.index(c) for c in ("car", "bus", "truck", "cyclist", "pedestrian"))
+CAR, BUS, TRUCK, CYCLIST, PEDESTRIAN = (AGENT_CATEGORIES.index(c)
+                                        for c in ("car", "bus", "truck", "cyclist", "pedestrian"))
 AMBER_SECONDS = 3.0
 ALL_RED_SECONDS = 1.0
 IDM_MIN_GAP = 2.0
@@ -306,7 +307,8 @@ class World:
 
     def _lane_free(self, i: int, d_target: float) -> bool:
         a = self.agents
-        near = a.is_vehicle & (a.path == a.path[i]) & (np.abs(a.d - d_target) < 1.5) & (np.abs(a.s - a.s[i]) < 12 + a.v[i])
+        near = (a.is_vehicle & (a.path == a.path[i]) & (np.abs(a.d - d_target) < 1.5)
+                & (np.abs(a.s - a.s[i]) < 12 + a.v[i]))
         return not np.any(near)
 
     def _walk(self, t: float, dt: float) -> None:

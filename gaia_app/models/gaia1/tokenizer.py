@@ -79,7 +79,8 @@ class ImageTokenizer(nn.Module):
     def _check_size(self, x: torch.Tensor) -> None:
         d = self.downsampling
         if x.ndim != 4 or x.shape[1] != 3 or x.shape[-2] % d or x.shape[-1] % d:
-            raise ValueError(f"ImageTokenizer expects images (b, 3, H, W) with H and W divisible by D={d}; got {tuple(x.shape)}")
+            raise ValueError(f"ImageTokenizer expects images (b, 3, H, W) with H and W divisible by D={d}; "
+                             f"got {tuple(x.shape)}")
 
     def quantize(self, x: torch.Tensor) -> QuantizerOutput:
         """x: (b, 3, H, W) in [-1, 1] → QuantizerOutput on the (h, w) grid."""

@@ -25,8 +25,8 @@ the samplers live in `gaia_app.diffusion`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -226,7 +226,8 @@ class VideoDecoder(nn.Module):
         if residual_scale <= 0:
             raise ValueError(f"VideoDecoder: residual_scale must be > 0, got {residual_scale}")
         if residual and not render_tokens:
-            raise ValueError("VideoDecoder: residual=True diffuses the residual over the rendered tokens; set render_tokens=True")
+            raise ValueError("VideoDecoder: residual=True diffuses the residual over the rendered tokens; "
+                             "set render_tokens=True")
         self.vocab_size, self.frames, self.channels, self.checkpointing = vocab_size, frames, channels, checkpointing
         self.render_tokens, self.residual, self.residual_scale = render_tokens, residual, residual_scale
         self.token_grid, self.image_size = tuple(token_grid), tuple(image_size)
@@ -325,7 +326,8 @@ class VideoDecoder(nn.Module):
                  "context_mask": context_mask}
         if self.render_tokens:
             if rendered is None:
-                raise ValueError("VideoDecoder: built with render_tokens=True, so forward needs `rendered` (b, t, 3, H, W), "
+                raise ValueError("VideoDecoder: built with render_tokens=True, so forward needs `rendered` "
+                                 "(b, t, 3, H, W), "
                                  "the tokenizer's frame-by-frame decoding of the tokens")
             expected["rendered"], given["rendered"] = tuple(x_t.shape), rendered
         elif rendered is not None:
@@ -351,10 +353,12 @@ class VideoDecoder(nn.Module):
         clean = torch.where(mask.bool(), context, torch.zeros_like(context))  # zeros, even where context is NaN
         parts = [x_t, clean, mask.expand(-1, -1, 1, *x_t.shape[-2:])]
         if rendered is not None and token_mask is not None:
-            parts.append(torch.where(self.pixel_token_mask(token_mask, x_t.shape[-2:]), rendered, torch.zeros_like(rendered)))
+            parts.append(torch.where(self.pixel_token_mask(token_mask, x_t.shape[-2:]), rendered,
+                                     torch.zeros_like(rendered)))
         return rearrange(torch.cat(parts, dim=2), "b t c h w -> (b t) c h w")
 
-    def residual_frame(self, rendered: torch.Tensor | None, token_mask: torch.Tensor, like: torch.Tensor) -> ResidualFrame:
+    def residual_frame(self, rendered: torch.Tensor | None, token_mask: torch.Tensor,
+                       like: torch.Tensor) -> ResidualFrame:
         """What the decoder diffuses for frames shaped like `like` (b, t, 3, H, W): the residual over the rendered
         tokens, divided by residual_scale, where tokens are given (token_mask (b, t) or (b, t, h, w)); the frame
         itself elsewhere, and everywhere unless `residual`."""

@@ -78,7 +78,8 @@ class WorldModelConditioner(nn.Module):
         norm = {"delta_std": DEFAULT_DELTA_STD, **dict(action_norm or DEFAULT_ACTION_NORM)}
         mean, std, delta_std = ([float(v) for v in norm.get(key, ())]  # floats: works on meta too
                                 for key in ("mean", "std", "delta_std"))
-        if any(len(v) != action_tokens or min(v, default=0.0) <= 0 for v in (std, delta_std)) or len(mean) != action_tokens:
+        if (any(len(v) != action_tokens or min(v, default=0.0) <= 0 for v in (std, delta_std))
+                or len(mean) != action_tokens):
             raise ValueError(f"action_norm needs 'mean', 'std' (and 'delta_std') with {action_tokens} values each, "
                              f"std > 0; got {dict(norm)}")
         # persistent: the scales the projection was trained with travel with the weights
@@ -251,7 +252,10 @@ class WorldModel(nn.Module):
         """(b, t, s, d): the summed action tokens of step t - 1 (actions: (b, t, l, d)) at the n positions
         predicting z_{t,·}; zeros for the step opening the window unless `previous` (b, l, d) gives its actions."""
         earlier = actions[:, :-1].sum(dim=2)  # (b, t - 1, d)
-        first = actions.new_zeros(actions.shape[0], 1, actions.shape[-1]) if previous is None else previous.sum(1)[:, None]
+        if previous is None:
+            first = actions.new_zeros(actions.shape[0], 1, actions.shape[-1])
+        else:
+            first = previous.sum(1)[:, None]
         earlier = repeat(torch.cat([first, earlier], dim=1), "b t d -> b t n d", n=self.n)
         return nn.functional.pad(earlier, (0, 0, self.m - 1, self.l + 1))
 

@@ -217,7 +217,8 @@ class WorldConditioner(nn.Module):
         """(b, v, 16): focal lengths and principal point over the image size, rotation and translation (m)."""
         height, width = cond.image_size
         k = cond.intrinsics
-        intr = torch.stack([k[..., 0, 0] / width, k[..., 1, 1] / height, k[..., 0, 2] / width, k[..., 1, 2] / height], -1)
+        intr = torch.stack([k[..., 0, 0] / width, k[..., 1, 1] / height, k[..., 0, 2] / width,
+                            k[..., 1, 2] / height], -1)
         extr = torch.cat([cond.extrinsics[..., :3, :3].flatten(-2), cond.extrinsics[..., :3, 3]], dim=-1)
         return torch.cat([intr, extr], dim=-1)
 

@@ -24,7 +24,8 @@ def step_seconds(timestamps: torch.Tensor | None, steps: int) -> torch.Tensor:
     """(b, t) duration of each latent step from its timestamps (b, t); the first step takes the second's."""
     if timestamps is None or steps < 2:
         raise ValueError("the action raster (model.net.action_raster) needs the timestamps of at least two latent "
-                         f"steps to turn speeds into distances; got {'no timestamps' if timestamps is None else f'{steps} step'}")
+                         "steps to turn speeds into distances; "
+                         f"got {'no timestamps' if timestamps is None else f'{steps} step'}")
     gaps = timestamps[:, 1:] - timestamps[:, :-1]
     if (gaps <= 0).any():
         raise ValueError(f"timestamps must increase from step to step; got gaps {gaps.tolist()}")

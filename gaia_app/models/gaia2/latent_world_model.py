@@ -84,7 +84,8 @@ class LatentWorldModel(nn.Module):
     def check(self, x: torch.Tensor, tau: torch.Tensor, cond: WorldConditions) -> None:
         """Raise ValueError naming the tensor whose shape breaks the contract."""
         if x.ndim != 6 or x.shape[3] != self.latent_channels:
-            raise ValueError(f"LatentWorldModel expects latents (b, v, t, C={self.latent_channels}, h, w); got {tuple(x.shape)}")
+            raise ValueError(f"LatentWorldModel expects latents (b, v, t, C={self.latent_channels}, h, w); "
+                             f"got {tuple(x.shape)}")
         b, v, t, _, h, w = x.shape
         if h % self.patch or w % self.patch:
             raise ValueError(f"latent grid {h}×{w} is not divisible by patch_size={self.patch}")

@@ -1,4 +1,5 @@
-"""GAIA-2 video tokenizer: continuous space-time latents from an asymmetric transformer autoencoder (GAIA-2 report, tokenizer).
+"""GAIA-2 video tokenizer: continuous space-time latents from an asymmetric transformer autoencoder (GAIA-2 report,
+tokenizer).
 
 Legend:
     b batch, v cameras, T frames, t = T / τ latent steps (τ temporal downsampling, paper 8),
@@ -53,7 +54,8 @@ class VideoEncoder(nn.Module):
         reduction = 2 ** (len(conv_mults) - 1) if conv_mults else 1
         patch = spatial // reduction
         in_channels = conv_channels * conv_mults[-1] if conv_mults else 3
-        self.tubelet = nn.Conv3d(in_channels, dim, kernel_size=(temporal, patch, patch), stride=(temporal, patch, patch))
+        self.tubelet = nn.Conv3d(in_channels, dim, kernel_size=(temporal, patch, patch),
+                                 stride=(temporal, patch, patch))
         self.transformer = SpaceTimeTransformer(dim, depth, heads, mlp_ratio, checkpointing=checkpointing)
         self.head = nn.Linear(dim, 2 * latent_channels)
 
@@ -82,14 +84,16 @@ class VideoDecoder(nn.Module):
         self.stem = nn.Linear(latent_channels, dim)
         self.transformer = SpaceTimeTransformer(dim, depth, heads, mlp_ratio, checkpointing=checkpointing)
         self.untubelet = nn.Linear(dim, temporal * self.patch * self.patch * self.out_channels)
-        self.conv = ConvDecoder(self.out_channels, 3, conv_channels, conv_mults, conv_blocks, checkpointing) if conv_mults else None
+        self.conv = (ConvDecoder(self.out_channels, 3, conv_channels, conv_mults, conv_blocks, checkpointing)
+                     if conv_mults else None)
 
     def forward(self, latents: torch.Tensor) -> torch.Tensor:
         b, t, _, h, w = latents.shape
         tokens = self.stem(rearrange(latents, "b t c h w -> b t (h w) c"))
         tokens = tokens + spacetime_positions(t, h, w, tokens.shape[-1], tokens.device).to(tokens.dtype)
         x = self.untubelet(self.transformer(tokens))
-        x = rearrange(x, "b t (h w) (tau p q c) -> (b t tau) c (h p) (w q)", h=h, tau=self.temporal, p=self.patch, q=self.patch)
+        x = rearrange(x, "b t (h w) (tau p q c) -> (b t tau) c (h p) (w q)", h=h, tau=self.temporal, p=self.patch,
+                      q=self.patch)
         if self.conv is not None:
             x = self.conv(x)
         return rearrange(x, "(b T) c H W -> b T c H W", b=b)
@@ -101,7 +105,8 @@ class VideoDecoder(nn.Module):
 
 
 class VideoTokenizer(nn.Module):
-    """Continuous video autoencoder: (b, v, T, 3, H, W) ↔ Gaussian latents (b, v, T/τ, C, H/s, W/s) (GAIA-2 report, tokenizer).
+    """Continuous video autoencoder: (b, v, T, 3, H, W) ↔ Gaussian latents (b, v, T/τ, C, H/s, W/s) (GAIA-2 report,
+    tokenizer).
 
     Args:
         spatial_downsampling: s (paper 32: 448×960 → 14×30).
@@ -190,8 +195,8 @@ class VideoTokenizer(nn.Module):
         b = video.shape[0]
         frames = rearrange(video, "b v T c H W -> (b v) T c H W")
         tau = self.temporal
-        moments = torch.cat([self.encoder(frames[:, s.start * tau : s.stop * tau]) for s in self.chunks(frames.shape[1] // tau)],
-                            dim=1)
+        moments = torch.cat([self.encoder(frames[:, s.start * tau : s.stop * tau])
+                             for s in self.chunks(frames.shape[1] // tau)], dim=1)
         mean, logvar = moments.chunk(2, dim=2)
         unfold = "(b v) t c h w -> b v t c h w"
         return DiagonalGaussian(rearrange(mean, unfold, b=b), rearrange(logvar, unfold, b=b))
@@ -213,9 +218,11 @@ class VideoTokenizer(nn.Module):
         return VideoTokenizerOutput(self.decode(latents), posterior, latents)
 
     def distill(self, latents: torch.Tensor) -> torch.Tensor:
-        """Latents (b, v, t, C, h, w) → (b·v·t, f, h, w) in the DINOv2 teacher's feature space (GAIA-2 report, tokenizer)."""
+        """Latents (b, v, t, C, h, w) → (b·v·t, f, h, w) in the DINOv2 teacher's feature space (GAIA-2 report,
+        tokenizer)."""
         if self.distill_head is None:
-            raise ValueError("VideoTokenizer was built with distill_dim=0: set the net's distill_dim to the teacher's feature dim")
+            raise ValueError("VideoTokenizer was built with distill_dim=0: set the net's distill_dim to the teacher's "
+                             "feature dim")
         return self.distill_head(rearrange(latents, "b v t c h w -> (b v t) c h w"))
 
     @property
