@@ -1,5 +1,5 @@
 """Teacher-forced condition gains of the GAIA-2 latent world model: how much each condition lowers the flow-matching
-loss of real held-out futures (docs/latent_world_model.md, "What the model reads from its actions").
+loss of real held-out futures (docs/latent_world_model_notes.md, "What the model reads from its actions").
 
 Legend: b windows, v cameras, t latent steps, C channels, h w latent grid.
 
