@@ -32,11 +32,12 @@ from omegaconf import DictConfig
 
 from gaia_app.eval.intervals import mean_interval
 from gaia_app.eval.report import ARROWS
+from gaia_app.pipelines.gaia2_edits import cut_steps
 from gaia_app.tasks import gaia2_actions
 from gaia_app.tasks.controllability import CONTRASTS
 from gaia_app.tasks.evaluate import check_metrics
 from gaia_app.tasks.gaia2_evaluate import fidelity_table, rig_samples
-from gaia_app.tasks.gaia2_generate import cut_steps, load_gaia2
+from gaia_app.tasks.gaia2_generate import load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
 
 CONF = Path(__file__).resolve().parents[1] / "conf"

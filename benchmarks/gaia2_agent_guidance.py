@@ -27,8 +27,9 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
+from gaia_app.pipelines.gaia2_edits import cut_steps
 from gaia_app.tasks import gaia2_evaluate
-from gaia_app.tasks.gaia2_generate import cut_steps, load_gaia2
+from gaia_app.tasks.gaia2_generate import load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
 
 CONF = Path(__file__).resolve().parents[1] / "conf"

@@ -36,14 +36,8 @@ from gaia_app.eval.agent_fidelity import box_mask as pixel_box
 from gaia_app.eval.agent_fidelity import fidelity_frames
 from gaia_app.eval.agent_iou import load_agent_probe, predicted_agents
 from gaia_app.eval.intervals import mean_interval, ratio_interval, share_interval
-from gaia_app.tasks.gaia2_generate import (
-    commanded,
-    latent_steps,
-    load_gaia2,
-    sample_latents,
-    source_clip,
-    with_added_agents,
-)
+from gaia_app.pipelines.gaia2_edits import with_added_agents
+from gaia_app.tasks.gaia2_generate import commanded, latent_steps, load_gaia2, sample, source_clip
 from gaia_app.utils.run_dir import atomic_write_text
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -96,7 +90,7 @@ def rollout(cfg, pipeline, index: int, specs: list[dict[str, Any]]) -> tuple[tor
     clip = commanded(cfg, source_clip(cfg, pipeline, steps), first, pipeline.metadata.fields)
     own = max((int(a.track_id.max()) for a in clip.agents or [] if len(a)), default=0)
     clip = with_added_agents(clip, specs, first)
-    frames = pipeline.decode(sample_latents(cfg, pipeline, clip))[0, 0, first:].clamp(-1, 1).float().cpu()
+    frames = pipeline.decode(sample(cfg, pipeline, clip).latents)[0, 0, first:].clamp(-1, 1).float().cpu()
     boxes = car_boxes(clip, own + 1, first, *frames.shape[-2:])
     return frames[: len(boxes)], boxes[: len(frames)]
 

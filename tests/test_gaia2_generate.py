@@ -17,8 +17,9 @@ from gaia_app.data.latent_cache import find_latent_clips, read_latent_clip
 from gaia_app.eval.report import combined_table
 from gaia_app.pipelines.gaia1_inputs import future_actions
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline, check_metadata, with_labels
+from gaia_app.pipelines.gaia2_edits import with_added_agents
 from gaia_app.tasks.gaia2_evaluate import box_masks
-from gaia_app.tasks.gaia2_generate import left_to_right, pixel_boxes, with_added_agents
+from gaia_app.tasks.gaia2_generate import left_to_right, pixel_boxes
 from gaia_app.tasks.generate import generate
 from gaia_app.tasks.train import train
 from tests.conftest import compose_config

@@ -10,8 +10,9 @@ and `WorldConditions` exactly as training saw them (data/latent_windows.latent_w
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import replace
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,7 @@ from gaia_app.models.gaia2.conditioning import WorldConditions, batch_conditions
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
 from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer
 from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
+from gaia_app.pipelines.gaia2_edits import InpaintRegion, cut_steps
 from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
 from gaia_app.pipelines.gaia2_world_model import Guidance, LatentWorldModelPipeline
 from gaia_app.utils.shipped import load_nets, shipped_folder
@@ -61,6 +63,26 @@ def with_labels(clip: LatentClip, first_frame: int = 0, actions: np.ndarray | No
     if prompt is not None:
         out.text = list(clip.text or [None] * frames)[:first_frame] + [prompt] * (frames - first_frame)
     return out
+
+
+GAIA2_MODES = ("scratch", "rollout", "inpaint", "edit")
+
+
+@dataclass
+class Gaia2Output:
+    """What one GAIA-2 generation call returns.
+
+    latents: (k, v, t, C, h, w) k samples in the world model's scaled units (`Gaia2Pipeline.decode` turns them into
+    frames); clip: the latent clip whose labels conditioned them (cut to the t steps); first_generated_frame: the
+    first frame not given (0 unless the call continues a context); seconds_per_sample: sampling wall time;
+    evaluated_tokens: world-model token evaluations so far (the pipeline's counter).
+    """
+
+    latents: torch.Tensor
+    clip: LatentClip
+    first_generated_frame: int
+    seconds_per_sample: float
+    evaluated_tokens: int
 
 
 class Gaia2Pipeline:
@@ -144,3 +166,78 @@ class Gaia2Pipeline:
     def decode(self, latents: torch.Tensor) -> torch.Tensor:
         """Scaled latents (b, v, t, C, h, w) → frames (b, v, t·τ, 3, H, W) in [-1, 1]."""
         return self.tokenizer.decode(latents / self.scale).clamp(-1, 1)
+
+    def decode_samples(self, latents: torch.Tensor) -> torch.Tensor:
+        """Scaled latents (k, v, t, C, h, w) → frames (k, v, t·τ, 3, H, W), one sample at a time (bounded memory)."""
+        return torch.cat([self.decode(x[None]) for x in latents])
+
+    # one call per mode (GAIA-2 report, inference); `drop` removes whole conditions (e.g. ["action"]), the k samples
+    # draw from one generator seeded by `seed`, one after the other
+
+    def scratch(self, clip: LatentClip, steps: int, num_futures: int = 1, seed: int = 0,
+                drop: Sequence[str] = ()) -> Gaia2Output:
+        """`steps` latent steps from noise under the conditions of the clip's first `steps` steps."""
+        real, cond = self.conditioned_window(clip, steps, drop)
+        return self.sampled(clip, steps, 0, num_futures, seed,
+                            lambda generator: self.world.from_scratch(tuple(real.shape), cond, generator))
+
+    def rollout(self, clip: LatentClip, context_steps: int, steps: int, chunks: int, num_futures: int = 1,
+                seed: int = 0, drop: Sequence[str] = ()) -> Gaia2Output:
+        """`context_steps` clean steps of the clip, then `chunks` chunks of steps − context_steps new steps, each
+        under the conditions of its own window of the clip, each continuing from the last generated steps."""
+        if not 0 < context_steps < steps or chunks < 1:
+            raise ValueError(f"rollout: context_steps={context_steps}, steps={steps}, chunks={chunks}: "
+                             "need 0 < context_steps < steps and chunks ≥ 1")
+        new = steps - context_steps
+        total = context_steps + chunks * new
+        self.check_length(clip, total)
+        context, _ = self.window(clip, 0, context_steps)
+        windows = [self.window(clip, j * new, steps)[1].without(*drop) for j in range(chunks)]
+        return self.sampled(clip, total, context_steps * self.temporal, num_futures, seed,
+                            lambda generator: self.world.rollout(context, windows, new, generator))
+
+    def inpaint(self, clip: LatentClip, steps: int, region: InpaintRegion, num_futures: int = 1, seed: int = 0,
+                drop: Sequence[str] = ()) -> Gaia2Output:
+        """Regenerate `region` of the clip's first `steps` steps and keep the rest."""
+        real, cond = self.conditioned_window(clip, steps, drop)
+        mask = region.mask(clip, cond, tuple(real.shape), self.world.model.patch).to(real.device)
+        return self.sampled(clip, steps, 0, num_futures, seed,
+                            lambda generator: self.world.inpaint(real, mask, cond, generator))
+
+    def edit(self, clip: LatentClip, steps: int, strength: float, num_futures: int = 1, seed: int = 0,
+             drop: Sequence[str] = ()) -> Gaia2Output:
+        """Noise the clip's first `steps` latent steps to 1 − strength and denoise them under its (edited)
+        conditions (SDEdit-style)."""
+        if not 0 < strength <= 1:
+            raise ValueError(f"model.edit_strength={strength}: expected 0 < strength ≤ 1")
+        real, cond = self.conditioned_window(clip, steps, drop)
+        return self.sampled(clip, steps, 0, num_futures, seed,
+                            lambda generator: self.world.edit(real, cond, strength, generator))
+
+    def check_length(self, clip: LatentClip, steps: int) -> None:
+        if steps < 1 or clip.mean.shape[1] < steps:
+            raise ClipError(f"clip '{clip.clip_id}' has {clip.mean.shape[1]} latent steps "
+                            f"({clip.mean.shape[1] * clip.temporal_downsampling} frames); the call needs {steps}")
+
+    def conditioned_window(self, clip: LatentClip, steps: int,
+                           drop: Sequence[str]) -> tuple[torch.Tensor, WorldConditions]:
+        """The clip's first `steps` scaled latents (1, v, t, C, h, w) and their conditions without `drop`."""
+        self.check_length(clip, steps)
+        real, cond = self.window(clip, 0, steps)
+        return real, cond.without(*drop)
+
+    def sampled(self, clip: LatentClip, steps: int, first_generated: int, num_futures: int, seed: int,
+                run: Callable[[torch.Generator], torch.Tensor]) -> Gaia2Output:
+        """`num_futures` samples of `run`, one after the other from one generator seeded by `seed`."""
+        if num_futures < 1:
+            raise ValueError(f"num_futures={num_futures}: expected at least 1")
+        generator = torch.Generator(device=self.device).manual_seed(int(seed))
+        start = time.perf_counter()
+        latents = torch.cat([run(generator) for _ in range(num_futures)])
+        seconds = (time.perf_counter() - start) / num_futures
+        return Gaia2Output(latents, clip_steps(clip, steps), first_generated, seconds, self.world.counter.tokens)
+
+
+def clip_steps(clip: LatentClip, steps: int) -> LatentClip:
+    """The clip cut to its first `steps` latent steps (unchanged when it has exactly that many)."""
+    return clip if clip.mean.shape[1] == steps else cut_steps(clip, steps)

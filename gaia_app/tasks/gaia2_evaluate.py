@@ -57,10 +57,11 @@ from gaia_app.eval.intervals import mean_interval, ratio_interval
 from gaia_app.eval.report import ARROWS
 from gaia_app.models.gaia2.conditioning import project_boxes
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline
+from gaia_app.pipelines.gaia2_edits import cut_steps
 from gaia_app.pipelines.gaia2_world_model import Guidance
 from gaia_app.tasks import gaia2_actions
 from gaia_app.tasks.evaluate import check_metrics, feature_metrics, score
-from gaia_app.tasks.gaia2_generate import cut_steps, load_gaia2
+from gaia_app.tasks.gaia2_generate import load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
 
 

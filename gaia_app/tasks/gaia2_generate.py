@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -34,22 +32,20 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from gaia_app.data.clip import AGENT_CATEGORIES, AgentBoxes, Clip, ClipError
+from gaia_app.data.clip import AGENT_CATEGORIES, Clip, ClipError
 from gaia_app.data.collate import pad_agents
 from gaia_app.data.latent_cache import LatentClip, find_latent_clips, read_latent_clip
 from gaia_app.data.transforms import to_uint8
 from gaia_app.data.video_io import write_video
 from gaia_app.models.gaia2.conditioning import AgentBoxes3d, project_boxes
 from gaia_app.pipelines.gaia1_inputs import folder_clip, future_actions
-from gaia_app.pipelines.gaia2 import Gaia2Pipeline, check_metadata, with_labels
-from gaia_app.pipelines.gaia2_world_model import agent_token_positions
+from gaia_app.pipelines.gaia2 import Gaia2Output, Gaia2Pipeline, check_metadata, with_labels
+from gaia_app.pipelines.gaia2_edits import InpaintRegion, cut_steps, with_added_agents
 from gaia_app.tasks.rollout import CONTEXT_COLOUR, FUTURE_COLOUR, staging
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.viz.blueprints import rig_tabs_blueprint
 from gaia_app.viz.media import video_grid
 from gaia_app.viz.world import log_world
-
-GAIA2_MODES = ("scratch", "rollout", "inpaint", "edit")
 
 
 def load_gaia2(cfg: DictConfig) -> Gaia2Pipeline:
@@ -117,15 +113,6 @@ def source_clip(cfg: DictConfig, pipeline: Gaia2Pipeline, steps: int) -> LatentC
     return cut_steps(clip, steps)
 
 
-def cut_steps(clip: LatentClip, steps: int) -> LatentClip:
-    """The first `steps` latent steps of `clip` and the labels of their frames."""
-    frames = steps * clip.temporal_downsampling
-    cut = (lambda x: None if x is None else x[:frames])  # noqa: E731
-    return replace(clip, mean=clip.mean[:, :steps], logvar=clip.logvar[:, :steps], timestamps=clip.timestamps[:frames],
-                   actions=cut(clip.actions), text=cut(clip.text), agents=cut(clip.agents),
-                   frame_meta=cut(clip.frame_meta))
-
-
 def commanded(cfg: DictConfig, clip: LatentClip, first_frame: int, fields: list[str]) -> LatentClip:
     """The clip with the user's actions, prompt and metadata on frames first_frame.. (absent settings: the clip's own).
     fields: the metadata fields of the world model."""
@@ -141,124 +128,41 @@ def commanded(cfg: DictConfig, clip: LatentClip, first_frame: int, fields: list[
     return with_labels(clip, first_frame, actions, cfg.prompt, metadata)
 
 
-AGENT_KEYS = {"category", "centre", "size", "yaw", "velocity"}
-
-
-def with_added_agents(clip: LatentClip, specs: list[dict[str, Any]], first_frame: int) -> LatentClip:
-    """The clip with the agents of `specs` (model.add_agents) added to its own on frames first_frame..: each a box in
-    the ego frame at the first of those frames (centre (x forward, y left, z up) m, size (length, width, height) m,
-    yaw rad, category), moving at `velocity` (vx, vy) m/s relative to the ego; a new track id each."""
-    if not specs:
-        return clip
-    frames = clip.timestamps.shape[0]
-    own = clip.agents or [AgentBoxes.empty() for _ in range(frames)]
-    next_id = 1 + max((int(a.track_id.max()) for a in own if len(a)), default=0)
-    added = [added_agent(spec, i, next_id + i) for i, spec in enumerate(specs)]
-    elapsed = clip.timestamps - clip.timestamps[min(first_frame, frames - 1)]
-    agents = list(own)
-    for f in range(first_frame, frames):
-        moved = [replace(box, centre=box.centre + np.r_[velocity * elapsed[f], 0.0]) for box, velocity in added]
-        agents[f] = concat_agents([own[f], *moved])
-    return replace(clip, agents=agents)
-
-
-def added_agent(spec: Any, index: int, track_id: int) -> tuple[AgentBoxes, np.ndarray]:
-    """One model.add_agents entry → (its box at the first edited frame, its (vx, vy) relative velocity m/s)."""
-    where = f"model.add_agents[{index}]"
-    spec = _plain(spec)
-    if not isinstance(spec, dict):
-        raise ValueError(f"{where}: expected a mapping with category, centre, size (and yaw, velocity), got {spec!r}")
-    unknown, missing = sorted(set(spec) - AGENT_KEYS), sorted({"category", "centre", "size"} - set(spec))
-    if unknown or missing:
-        raise ValueError(f"{where}: unknown keys {unknown}, missing keys {missing} (keys: {sorted(AGENT_KEYS)})")
-    if spec["category"] not in AGENT_CATEGORIES:
-        raise ValueError(f"{where}.category={spec['category']!r}: expected one of {list(AGENT_CATEGORIES)}")
-    centre, size = (numbers(spec[key], 3, f"{where}.{key}") for key in ("centre", "size"))
-    velocity = numbers(spec.get("velocity", [0.0, 0.0]), 2, f"{where}.velocity")
-    if (size <= 0).any():
-        raise ValueError(f"{where}.size={size.tolist()}: length, width and height must be positive metres")
-    yaw = float(numbers([spec.get("yaw", 0.0)], 1, f"{where}.yaw")[0])
-    box = AgentBoxes(centre[None], size[None], [yaw], [AGENT_CATEGORIES.index(spec["category"])], [track_id])
-    return box, velocity
-
-
-def numbers(value: Any, n: int, where: str) -> np.ndarray:
-    """`value` as n finite floats, or an error naming `where`."""
-    try:
-        array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        array = None
-    if array is None or array.shape != (n,) or not np.isfinite(array).all():
-        raise ValueError(f"{where}={value!r}: expected {n} finite numbers")
-    return array
-
-
-def concat_agents(parts: list[AgentBoxes]) -> AgentBoxes:
-    """The boxes of every part, in order, as one frame's AgentBoxes."""
-    return AgentBoxes(*(np.concatenate([getattr(p, k) for p in parts]) for k in
-                        ("centre", "size", "yaw", "category", "track_id")))
-
-
 def _plain(value: Any) -> Any:
     return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
 
 
-def inpaint_mask(cfg: DictConfig, clip: LatentClip, cond: Any, shape: tuple[int, ...], patch: int) -> torch.Tensor:
-    """(1, v, t, h, w) True where the latents are regenerated: the cells under any visible agent box
-    (model.inpaint.region=agents) or inside model.inpaint.box (x0, y0, x1, y1 as fractions of the image) on
-    model.inpaint.cameras (null: every camera)."""
+def first_generated_frame(cfg: DictConfig, pipeline: Gaia2Pipeline) -> int:
+    """The first frame the mode generates: after the clean context steps of a rollout, else 0."""
+    return cfg.model.context_steps * pipeline.temporal if cfg.mode == "rollout" else 0
+
+
+def conditioned_clip(cfg: DictConfig, pipeline: Gaia2Pipeline) -> LatentClip:
+    """The clip of `cfg.context` with the user's commands (speed, curvature, prompt, model.metadata) and
+    model.add_agents on the generated frames."""
+    first = first_generated_frame(cfg, pipeline)
+    clip = commanded(cfg, source_clip(cfg, pipeline, latent_steps(cfg)), first, pipeline.metadata.fields)
+    return with_added_agents(clip, _plain(cfg.model.add_agents) or [], first)
+
+
+def inpaint_region(cfg: DictConfig) -> InpaintRegion:
+    """model.inpaint as an InpaintRegion."""
     spec = cfg.model.inpaint
-    _, v, t, _, h, w = shape
-    if spec.region == "agents":
-        positions = agent_token_positions(cond, (h, w), patch).cpu()
-        if positions.numel() == 0:
-            raise ValueError(f"model.inpaint.region=agents: no agent box of clip '{clip.clip_id}' is visible; "
-                             "use model.inpaint.region=box")
-        tokens = torch.zeros(v * (h // patch) * (w // patch), dtype=torch.bool)
-        tokens[positions] = True
-        cells = tokens.view(v, h // patch, w // patch).repeat_interleave(patch, 1).repeat_interleave(patch, 2)
-        return cells[None, :, None].expand(1, v, t, h, w).clone()
-    if spec.region != "box":
-        raise ValueError(f"model.inpaint.region={spec.region!r}: expected agents or box")
-    x0, y0, x1, y1 = (float(x) for x in spec.box)
-    if not 0 <= x0 < x1 <= 1 or not 0 <= y0 < y1 <= 1:
-        raise ValueError(f"model.inpaint.box={list(spec.box)}: expected fractions x0 < x1, y0 < y1 in [0, 1]")
-    names = [c.name for c in clip.cameras]
-    chosen = names if spec.cameras is None else list(spec.cameras)
-    unknown = sorted(set(chosen) - set(names))
-    if unknown:
-        raise ValueError(f"model.inpaint.cameras: {unknown} not in the clip's rig {names}")
-    mask = torch.zeros(1, v, t, h, w, dtype=torch.bool)
-    rows = slice(math.floor(y0 * h), max(math.ceil(y1 * h), math.floor(y0 * h) + 1))
-    cols = slice(math.floor(x0 * w), max(math.ceil(x1 * w), math.floor(x0 * w) + 1))
-    for name in chosen:
-        mask[0, names.index(name), :, rows, cols] = True
-    return mask
+    cameras = None if spec.cameras is None else tuple(str(name) for name in spec.cameras)
+    return InpaintRegion(str(spec.region), tuple(float(x) for x in spec.box), cameras)
 
 
-def sample_latents(cfg: DictConfig, pipeline: Gaia2Pipeline, clip: LatentClip) -> torch.Tensor:
-    """cfg.num_futures samples of cfg.mode → scaled latents (k, v, t, C, h, w)."""
-    g, world = cfg.model, pipeline.world
-    drop = list(g.drop)
-    generator = torch.Generator(device=pipeline.device).manual_seed(int(cfg.seed))
+def sample(cfg: DictConfig, pipeline: Gaia2Pipeline, clip: LatentClip) -> Gaia2Output:
+    """cfg.num_futures samples of cfg.mode from `clip` (the pipeline call of the mode)."""
+    g = cfg.model
+    shared = {"num_futures": cfg.num_futures, "seed": int(cfg.seed), "drop": list(g.drop)}
     if cfg.mode == "rollout":
-        new = g.steps - g.context_steps
-        context, _ = pipeline.window(clip, 0, g.context_steps)
-        chunks = [pipeline.window(clip, j * new, g.steps)[1].without(*drop) for j in range(g.chunks)]
-        run = lambda: world.rollout(context, chunks, new, generator)  # noqa: E731
-    else:
-        real, cond = pipeline.window(clip, 0, g.steps)
-        cond = cond.without(*drop)
-        if cfg.mode == "scratch":
-            run = lambda: world.from_scratch(tuple(real.shape), cond, generator)  # noqa: E731
-        elif cfg.mode == "inpaint":
-            mask = inpaint_mask(cfg, clip, cond, tuple(real.shape), world.model.patch).to(real.device)
-            run = lambda: world.inpaint(real, mask, cond, generator)  # noqa: E731
-        else:
-            if not 0 < g.edit_strength <= 1:
-                raise ValueError(f"model.edit_strength={g.edit_strength}: expected 0 < strength ≤ 1")
-            run = lambda: world.edit(real, cond, g.edit_strength, generator)  # noqa: E731
-    return torch.cat([run() for _ in range(cfg.num_futures)])
+        return pipeline.rollout(clip, g.context_steps, g.steps, g.chunks, **shared)
+    if cfg.mode == "scratch":
+        return pipeline.scratch(clip, g.steps, **shared)
+    if cfg.mode == "inpaint":
+        return pipeline.inpaint(clip, g.steps, inpaint_region(cfg), **shared)
+    return pipeline.edit(clip, g.steps, g.edit_strength, **shared)
 
 
 def pixel_boxes(clip: LatentClip) -> list[dict[str, Any]]:
@@ -375,23 +279,17 @@ def describe(cfg: DictConfig, clip: LatentClip, pipeline: Gaia2Pipeline, first_g
 def gaia2_generate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Run cfg.mode with the GAIA-2 checkpoints and write its outputs (module docstring); returns the results."""
     pipeline = load_gaia2(cfg)
-    steps = latent_steps(cfg)
-    first_generated = cfg.model.context_steps * pipeline.temporal if cfg.mode == "rollout" else 0
-    clip = commanded(cfg, source_clip(cfg, pipeline, steps), first_generated, pipeline.metadata.fields)
-    clip = with_added_agents(clip, list(cfg.model.add_agents), first_generated)
-    start = time.perf_counter()
-    latents = sample_latents(cfg, pipeline, clip)
-    seconds = (time.perf_counter() - start) / cfg.num_futures
-    real_latents, _ = pipeline.window(clip, 0, steps)
-    real = pipeline.decode(real_latents)[0]
-    samples = torch.cat([pipeline.decode(x[None]) for x in latents])
+    out = sample(cfg, pipeline, conditioned_clip(cfg, pipeline))
+    clip, first_generated = out.clip, out.first_generated_frame
+    real = pipeline.decode(pipeline.window(clip, 0, clip.mean.shape[1])[0])[0]
+    samples = pipeline.decode_samples(out.latents)
     with staging(run_dir) as stage:
         files = write_outputs(stage, cfg, clip, real, samples, first_generated)
-        np.save(stage / "latents.npy", (latents / pipeline.scale).cpu().numpy().astype(np.float16))
+        np.save(stage / "latents.npy", (out.latents / pipeline.scale).cpu().numpy().astype(np.float16))
         atomic_write_text(stage / "conditioning.json",
                           json.dumps(describe(cfg, clip, pipeline, first_generated), indent=2, default=str))
     return {"model": "gaia2", "mode": cfg.mode, "clip": clip.clip_id, "samples": cfg.num_futures,
-            "latent_steps": steps, "frames": int(samples.shape[2]), "cameras": int(samples.shape[1]),
-            "fps": clip.fps, "first_generated_frame": first_generated, "seconds_per_sample": round(seconds, 3),
-            "evaluated_tokens": pipeline.world.counter.tokens,
+            "latent_steps": int(clip.mean.shape[1]), "frames": int(samples.shape[2]), "cameras": int(samples.shape[1]),
+            "fps": clip.fps, "first_generated_frame": first_generated,
+            "seconds_per_sample": round(out.seconds_per_sample, 3), "evaluated_tokens": out.evaluated_tokens,
             "files": files + ["latents.npy", "conditioning.json"]}

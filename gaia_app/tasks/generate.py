@@ -43,12 +43,13 @@ from gaia_app.pipelines.gaia1_tokenizer import (
     camera_names,
     segment_names,
 )
+from gaia_app.pipelines.gaia2 import GAIA2_MODES
 from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
 from gaia_app.tasks.controllability import controllability
 from gaia_app.tasks.evaluate import evaluate
 from gaia_app.tasks.export import export, export_gaia2
 from gaia_app.tasks.gaia2_evaluate import gaia2_evaluate
-from gaia_app.tasks.gaia2_generate import GAIA2_MODES, gaia2_generate
+from gaia_app.tasks.gaia2_generate import gaia2_generate
 from gaia_app.tasks.rollout import ROLLOUT_MODES, rollout
 from gaia_app.tasks.settings import GENERATE_RULES, check_settings
 from gaia_app.tasks.showcase import showcase
