@@ -56,8 +56,8 @@ from gaia_app.eval.agent_fidelity import (
 from gaia_app.eval.agent_iou import load_agent_probe, predicted_agents, save_agent_probe, train_agent_probe
 from gaia_app.eval.metrics import psnr, ssim
 from gaia_app.models.probes import AgentSegmentationProbe
-from gaia_app.pipelines.checkpoint_nets import checkpoint_nets, component_of
-from gaia_app.utils.shipped import load_nets, shipped_folder, weight_files
+from gaia_app.weights.folders import load_nets, shipped_folder, weight_files
+from gaia_app.weights.nets import checkpoint_nets
 
 RATES = {"gaia1": 6.25, "gaia2": 12.5}  # each family's frame rate: GAIA-1 §3; the GAIA-2 weights' MANIFEST
 PROBE_RATE = RATES["gaia1"]
@@ -119,8 +119,8 @@ def tokenizer_round_trip(weights: str) -> tuple[str, Any]:
     """(family, fn): fn maps videos (N, t, 3, H, W) in [-1, 1] to their reconstructions through the tokens.
     weights: a shipped name, a weights folder, or a tokenizer training checkpoint (.ckpt) of either family."""
     if Path(weights).suffix == ".ckpt":
-        nets, config = checkpoint_nets(weights, ("tokenizer", "video_tokenizer"), "--weights")
-        families = [component_of(config)]
+        nets, _, family = checkpoint_nets(weights, ("tokenizer", "video_tokenizer"), "--weights")
+        families = [family]
     else:
         folder = shipped_folder(weights)
         families = [c for c in ("tokenizer", "video_tokenizer") if _has(folder, c)]

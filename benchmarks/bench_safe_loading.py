@@ -25,9 +25,9 @@ import torch
 import yaml
 from hydra.utils import instantiate
 
-from gaia_app.utils.checkpoint_io import read_checkpoint
-from gaia_app.utils.shipped import WEIGHTS_ROOT, load_nets
 from gaia_app.utils.untrusted import read_untrusted_yaml
+from gaia_app.weights.checkpoints import read_checkpoint
+from gaia_app.weights.folders import WEIGHTS_ROOT, load_nets
 
 COMPONENTS = [("gaia1", "tokenizer"), ("gaia1", "world_model"), ("gaia1", "video_decoder"),
               ("gaia2", "video_tokenizer"), ("gaia2", "latent_world_model")]

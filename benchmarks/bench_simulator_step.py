@@ -33,7 +33,7 @@ from gaia_app.models.gaia1.world_model import WorldModel
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.simulator import DrivingSimulator
 from gaia_app.pipelines.simulator_episodes import EpisodeBatch
-from gaia_app.utils.shipped import shipped_folder
+from gaia_app.weights.folders import shipped_folder
 
 REAL_TIME_HZ = 6.25
 

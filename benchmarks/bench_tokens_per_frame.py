@@ -25,7 +25,7 @@ from pathlib import Path
 import torch
 
 from gaia_app.models.gaia1.world_model import next_token_loss
-from gaia_app.utils.shipped import build, load_nets, read_config, shipped_folder, weight_files
+from gaia_app.weights.folders import build, load_nets, read_config, shipped_folder, weight_files
 
 FRAMES = 12  # the shipped GAIA-1 window (1.9 s at 6.25 Hz)
 

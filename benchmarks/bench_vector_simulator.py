@@ -26,7 +26,7 @@ import torch
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.simulator import DrivingSimulator
 from gaia_app.pipelines.vector_simulator import VectorDrivingSimulator
-from gaia_app.utils.shipped import shipped_folder
+from gaia_app.weights.folders import shipped_folder
 
 
 def command_batches(steps: int, envs: int, seed: int) -> list[np.ndarray]:

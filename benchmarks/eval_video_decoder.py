@@ -61,7 +61,7 @@ class ShippedDecoder:
 
     def __init__(self, folder: str, device: str):
         from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule
-        from gaia_app.utils.shipped import load_nets, shipped_folder
+        from gaia_app.weights.folders import load_nets, shipped_folder
 
         folder = shipped_folder(folder)
         tokenizer, tokenizer_info = load_nets(folder, "tokenizer", device)

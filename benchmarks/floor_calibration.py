@@ -37,7 +37,7 @@ from gaia_app.tasks.controllability import (
     tokenized,
     world_clips,
 )
-from gaia_app.utils.shipped import shipped_folder
+from gaia_app.weights.folders import shipped_folder
 
 SCENE = ("time_of_day", "weather")
 

@@ -20,9 +20,9 @@ from pathlib import Path
 import torch
 
 from gaia_app.eval.flow_gain import condition_gain_report, every_window
-from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
 from gaia_app.utils.run_dir import atomic_write_text
-from gaia_app.utils.shipped import load_nets, shipped_folder
+from gaia_app.weights.folders import load_nets, shipped_folder
+from gaia_app.weights.nets import checkpoint_nets
 
 
 def main() -> None:
@@ -38,7 +38,7 @@ def main() -> None:
     if args.weights:
         nets, config = load_nets(shipped_folder(args.weights), "latent_world_model")
     else:
-        nets, config = checkpoint_nets(args.world_model_ckpt, "latent_world_model", "--world-model-ckpt", "cpu")
+        nets, config, _ = checkpoint_nets(args.world_model_ckpt, "latent_world_model", "--world-model-ckpt", "cpu")
     net = nets["net"].eval()
     batch = every_window(args.latents, args.steps, list(net.conditioner.metadata_fields))
     report = condition_gain_report(net, batch, float(config.get("latent_scale", 1.0)), args.context)

@@ -12,20 +12,22 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "gaia_app"
 BELOW_MODELS = {"nn", "utils"}
 # package → the gaia_app packages it may import (besides itself): nn ← models, diffusion (sees nets through
-# protocols) ← lit ← pipelines ← tasks; data, eval, encoders below pipelines; utils at the floor. Inference never
-# builds a LightningModule, so pipelines do not import lit.
+# protocols) ← lit ← pipelines ← tasks; data, eval, encoders below pipelines; weights (loading: checkpoints, weights
+# folders, the _target_ allow-list) just above utils; utils at the floor. Inference never builds a LightningModule,
+# so pipelines do not import lit.
 ALLOWED = {
     "utils": set(),
+    "weights": {"utils"},
     "nn": {"utils"},
     "models": BELOW_MODELS,
     "diffusion": BELOW_MODELS,
     "encoders": BELOW_MODELS,
     "data": {"utils"},
     "viz": {"data", "utils"},
-    "eval": {"nn", "models", "diffusion", "encoders", "data", "utils"},
-    "lit": {"nn", "models", "diffusion", "encoders", "data", "eval", "viz", "utils"},
-    "pipelines": {"nn", "models", "diffusion", "encoders", "data", "eval", "viz", "utils"},
-    "tasks": {"nn", "models", "diffusion", "encoders", "data", "eval", "viz", "utils", "lit", "pipelines"},
+    "eval": {"nn", "models", "diffusion", "encoders", "data", "weights", "utils"},
+    "lit": {"nn", "models", "diffusion", "encoders", "data", "eval", "viz", "weights", "utils"},
+    "pipelines": {"nn", "models", "diffusion", "encoders", "data", "eval", "viz", "weights", "utils"},
+    "tasks": {"nn", "models", "diffusion", "encoders", "data", "eval", "viz", "weights", "utils", "lit", "pipelines"},
 }
 LAYER = ALLOWED
 PURE_TORCH = {"nn", "models", "diffusion"}

@@ -73,7 +73,7 @@ def test_cached_latents_are_the_tokenizers_posterior(ckpt: Path, tmp_path: Path)
 def test_encode_with_the_shipped_tokenizer(tmp_path: Path) -> None:
     """weights=gaia2 encodes with the shipped video tokenizer (a cache to fine-tune the shipped world model on,
     model.init_from=gaia2): its posterior, and weights with ckpt is refused."""
-    from gaia_app.utils.shipped import load_nets, shipped_folder
+    from gaia_app.weights.folders import load_nets, shipped_folder
 
     out = tmp_path / "latents"
     cfg = compose_config("generate", [*ENCODE, "weights=gaia2", f"out_dir={out}", "splits=[val]", "max_clips=1"],
@@ -164,8 +164,8 @@ def test_encode_needs_a_gaia2_tokenizer_checkpoint(tmp_path: Path) -> None:
     tok_dir = tmp_path / "g1tok"
     train(compose_config("train", ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "data=synthetic_frames_tiny",
                                    "extras.print_config=false", "trainer.max_steps=1", "logger=csv"], tok_dir))
-    with pytest.raises(TypeError, match="mode=encode: ckpt=.* holds a ImageTokenizerModule checkpoint, "
-                                        "expected a VideoTokenizerModule"):
+    with pytest.raises(TypeError, match=r"mode=encode: ckpt=.* holds a tokenizer \(ImageTokenizerModule\) "
+                                        "checkpoint, expected a video_tokenizer checkpoint"):
         run_encode(tok_dir / "checkpoints" / "last.ckpt", tmp_path / "g", tmp_path / "latents")
 
 

@@ -92,7 +92,7 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
     from hydra.errors import InstantiationException
     from safetensors.torch import load_file, save_file
 
-    from gaia_app.utils.shipped import shipped_folder
+    from gaia_app.weights.folders import shipped_folder
 
     module = load_benchmark("gaia2_action_adherence")
     copy = shutil.copytree(shipped_folder("gaia2"), tmp_path / "copy")

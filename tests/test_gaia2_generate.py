@@ -294,7 +294,7 @@ def test_export_gives_a_weights_folder_that_generates_like_the_checkpoints(check
     with pytest.raises(ValueError, match=r"trained on \(64, 112\) frames"):
         generate(compose_config("generate", ["model=gaia2", "mode=scratch", *RIG, f"weights={folder}",
                                              "data.height=32"], tmp_path / "size"))
-    with pytest.raises(TypeError, match="tokenizer_ckpt=.* holds a LatentWorldModelModule checkpoint"):
+    with pytest.raises(TypeError, match=r"tokenizer_ckpt=.* holds a latent_world_model \(LatentWorldModelModule\)"):
         generate(compose_config("generate", ["model=gaia2", "mode=export", *RIG, f"out_dir={tmp_path / 'x'}",
                                              f"tokenizer_ckpt={checkpoints['world_model']}",
                                              f"world_model_ckpt={checkpoints['world_model']}"], tmp_path / "wrong"))
@@ -340,7 +340,7 @@ def test_inference_builds_nets_without_lightning_modules(checkpoints, tmp_path: 
     script = (
         "import sys\n"
         "from gaia_app.pipelines.gaia2 import Gaia2Pipeline\n"
-        "from gaia_app.pipelines.checkpoint_nets import checkpoint_nets\n"
+        "from gaia_app.weights.nets import checkpoint_nets\n"
         f"p = Gaia2Pipeline.from_checkpoints(r'{checkpoints['tokenizer']}', r'{checkpoints['world_model']}', 64, 112)\n"
         f"checkpoint_nets(r'{checkpoints['tokenizer']}', 'video_tokenizer', 'ckpt')\n"
         "import gaia_app.tasks.generate\n"

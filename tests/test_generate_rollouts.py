@@ -182,7 +182,8 @@ def test_a_context_clip_shorter_than_needed_is_named(checkpoints, tmp_path: Path
 def test_a_checkpoint_of_the_wrong_component_is_named(checkpoints, tmp_path: Path) -> None:
     wrong = {**checkpoints, "world_model_ckpt": checkpoints["decoder_ckpt"]}
     with pytest.raises(TypeError,
-                       match="world_model_ckpt=.*holds a VideoDecoderModule checkpoint, expected a WorldModelModule"):
+                       match=r"world_model_ckpt=.*holds a video_decoder \(VideoDecoderModule\) checkpoint, "
+                             "expected a world_model checkpoint"):
         run(wrong, tmp_path, "mode=video")
 
 

@@ -14,7 +14,7 @@ import pytest
 from gaia_app.lit.checkpoint import UnsafeCheckpointError, check_checkpoint_file, load_module, read_checkpoint
 from gaia_app.tasks.generate import generate
 from gaia_app.tasks.train import train
-from gaia_app.utils.targets import UnsafeTargetError, check_targets
+from gaia_app.weights.targets import UnsafeTargetError, check_targets
 from tests.conftest import TINY_TOKENIZER, Payload, compose_config, tampered
 
 pytestmark = pytest.mark.usefixtures("one_thread")

@@ -13,12 +13,12 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
 from gaia_app.tasks.generate import generate
 from gaia_app.utils.locks import FolderInUseError, FolderLock, folder_lock
 from gaia_app.utils.run_dir import RunDirLock
-from gaia_app.utils.shipped import WEIGHTS_ROOT, load_nets
 from gaia_app.utils.untrusted import UntrustedDataError
+from gaia_app.weights.folders import WEIGHTS_ROOT, load_nets
+from gaia_app.weights.nets import checkpoint_nets
 from tests.conftest import ROOT, compose_config, tampered
 
 pytestmark = pytest.mark.usefixtures("one_thread")

@@ -83,7 +83,7 @@ def gaia1_tokenizer(pretrained, clips, tmp_path_factory) -> Path:
 
 
 def test_gaia1_tokenizer_paper_runs_one_step(gaia1_tokenizer: Path) -> None:
-    from gaia_app.utils.checkpoint_io import read_checkpoint
+    from gaia_app.weights.checkpoints import read_checkpoint
 
     config = read_checkpoint(gaia1_tokenizer)["hyper_parameters"]["model_cfg"]
     assert config["net"]["codebook_size"] == 8192 and config["net"]["channel_mults"] == [1, 2, 4, 4, 8]

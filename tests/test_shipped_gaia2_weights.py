@@ -16,7 +16,7 @@ from gaia_app.data.transforms import to_float
 from gaia_app.eval.metrics import psnr
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline
 from gaia_app.tasks.generate import generate
-from gaia_app.utils.shipped import WEIGHTS_ROOT
+from gaia_app.weights.folders import WEIGHTS_ROOT
 from tests.conftest import compose_config
 
 pytestmark = pytest.mark.usefixtures("one_thread")

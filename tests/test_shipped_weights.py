@@ -1,4 +1,4 @@
-"""Shipped weights (gaia_app/utils/shipped.py): export from checkpoints, rebuild from .safetensors + .yaml alone,
+"""Shipped weights (gaia_app/weights/folders.py): export from checkpoints, rebuild from .safetensors + .yaml alone,
 generate with `weights=`, and clear errors for missing, corrupt or foreign files."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from gaia_app.eval.controllability import save_probes
 from gaia_app.models.probes import InverseDynamicsProbe, SceneAttributeProbe
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.tasks.generate import generate
-from gaia_app.utils.shipped import WEIGHTS_ROOT, load_nets, shipped_folder
+from gaia_app.weights.folders import WEIGHTS_ROOT, load_nets, shipped_folder
 from tests.conftest import compose_config
 from tests.test_generate_rollouts import SIZE, checkpoints, run  # noqa: F401  (checkpoints is a fixture)
 
@@ -240,7 +240,7 @@ def test_a_world_model_trains_on_the_shipped_tokenizer_and_exports_beside_it(che
 
 def test_generation_from_checkpoints_builds_no_lightning_module(checkpoints, monkeypatch) -> None:  # noqa: F811
     """Gaia1Pipeline.from_checkpoints builds the nets from each checkpoint's checked config and tensors alone
-    (pipelines/checkpoint_nets.py): the LightningModules, their objectives and loss networks are never built."""
+    (weights/nets.py): the LightningModules, their objectives and loss networks are never built."""
     from gaia_app.lit.base import GaiaModule
 
     def refuse(*args, **kwargs):

@@ -10,7 +10,7 @@ import torch
 
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.simulator import DrivingSimulator
-from gaia_app.utils.shipped import shipped_folder
+from gaia_app.weights.folders import shipped_folder
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -17,7 +17,7 @@ from gymnasium.utils.env_checker import check_env
 from gaia_app import DRIVE_ENV
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.simulator import DrivingSimulator, EpisodeOver
-from gaia_app.utils.shipped import shipped_folder
+from gaia_app.weights.folders import shipped_folder
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 ROOT = Path(__file__).resolve().parents[1]

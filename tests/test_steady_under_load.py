@@ -40,7 +40,7 @@ def test_busy_cpus_are_measured_from_the_machine() -> None:
 
 def test_decoding_shows_each_decoder_pass_not_only_windows(capsys) -> None:
     from gaia_app.pipelines.gaia1 import Gaia1Pipeline
-    from gaia_app.utils.shipped import shipped_folder
+    from gaia_app.weights.folders import shipped_folder
 
     pipeline = Gaia1Pipeline.from_weights(shipped_folder("gaia1"), decoder_steps=3, decoder_sampler="ddim",
                                           decoder_blend=None)

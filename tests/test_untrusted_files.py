@@ -19,10 +19,10 @@ import torch
 import yaml
 
 from gaia_app.lit.checkpoint import UnsafeCheckpointError, check_checkpoint_file, load_module, read_checkpoint
-from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
 from gaia_app.tasks.generate import generate
-from gaia_app.utils.shipped import WEIGHTS_ROOT, load_nets
 from gaia_app.utils.untrusted import MAX_DEPTH, UntrustedDataError, check_plain, read_untrusted_yaml
+from gaia_app.weights.folders import WEIGHTS_ROOT, load_nets
+from gaia_app.weights.nets import checkpoint_nets
 from tests.conftest import Payload, compose_config, tampered
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -98,7 +98,7 @@ def test_a_genuine_weights_folder_and_checkpoint_pass_the_checks(genuine: Path) 
     for family in ("gaia1", "gaia2"):
         for yaml_file in (WEIGHTS_ROOT / family).glob("*.yaml"):
             read_untrusted_yaml(yaml_file)
-    nets, _ = checkpoint_nets(genuine, "tokenizer", role="ckpt")
+    nets, _, _ = checkpoint_nets(genuine, "tokenizer", role="ckpt")
     assert set(nets) == {"net"}
 
 
@@ -188,7 +188,7 @@ def test_a_pickled_shard_entry_is_refused_and_runs_nothing(sharded, tmp_path: Pa
 @pytest.mark.filterwarnings("ignore:torch.distributed is disabled")
 @pytest.mark.parametrize("escape", ["../outside/__0_0.distcp", "../../../../../../etc/passwd", "/etc/passwd"])
 def test_a_shard_index_naming_files_outside_its_folder_is_refused(sharded, tmp_path: Path, escape: str) -> None:
-    from gaia_app.utils.checkpoint_io import DcpMetadataUnpickler
+    from gaia_app.weights.checkpoints import DcpMetadataUnpickler
 
     folder = sharded("escape.ckpt")
     outside = tmp_path / "outside"
@@ -206,7 +206,7 @@ def test_a_shard_index_naming_files_outside_its_folder_is_refused(sharded, tmp_p
 
 def test_a_stored_decoder_sampler_is_built_only_from_the_diffusion_package(tmp_path: Path) -> None:
     from gaia_app.pipelines.gaia1 import decoder_sampling
-    from gaia_app.utils.targets import UnsafeTargetError
+    from gaia_app.weights.targets import UnsafeTargetError
 
     marker = tmp_path / "pwned"
     for sampler in ({"_target_": "gaia_app.diffusion.samplers.torch.save", "obj": 1, "f": str(marker)},

@@ -15,7 +15,7 @@ from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.simulator import DrivingSimulator, EpisodeOver
 from gaia_app.pipelines.simulator_episodes import RowwisePicker
 from gaia_app.pipelines.vector_simulator import VectorDrivingSimulator
-from gaia_app.utils.shipped import shipped_folder
+from gaia_app.weights.folders import shipped_folder
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -23,8 +23,8 @@ from gaia_app.data.transforms import resample_clip
 from gaia_app.eval.controllability import probe_clips
 from gaia_app.models.probes import AgentSegmentationProbe
 from gaia_app.utils.run_dir import atomic_path, atomic_write_text
-from gaia_app.utils.shipped import FORMAT, load_nets, shipped_folder, stored
 from gaia_app.utils.untrusted import dump_plain_yaml
+from gaia_app.weights.folders import FORMAT, load_nets, shipped_folder, stored
 
 PROBE_COMPONENT = "agent_probe"
 
@@ -125,7 +125,7 @@ def overlap_counts(predicted: torch.Tensor, masks: torch.Tensor, region: torch.T
 
 def save_agent_probe(probe: AgentSegmentationProbe, folder: str | Path, info: dict[str, Any]) -> Path:
     """Write the probe as a weights component (`agent_probe.safetensors` + `agent_probe.yaml`, the layout of
-    utils/shipped.py) into `folder`, with `info` (how it was trained, what it scores); returns the folder."""
+    weights/folders.py) into `folder`, with `info` (how it was trained, what it scores); returns the folder."""
     from safetensors.torch import save_file
 
     folder = Path(folder)

@@ -11,6 +11,7 @@ from torch import nn
 from torch.distributed.fsdp import FullyShardedDataParallel
 
 from gaia_app.utils import threads
+from gaia_app.weights.nets import NETS_RECORD
 
 # layers whose weight matrices AdamW decays; everything else (embeddings, positions, null tokens, action
 # projections, norms, biases, bare Parameters) is left alone: decaying a learned null token or a rarely-used
@@ -40,6 +41,11 @@ class GaiaModule(L.LightningModule):
         sched: schedule factory taking the optimiser, or None for a constant LR.
     """
 
+    # what this module's checkpoints hold for inference (gaia_app/weights/nets.py reads it back, so loaders never
+    # name LightningModule classes): the component and {net key of the model config: state-dict prefix}
+    component: str | None = None
+    net_prefixes: dict[str, str] = {"net": "net."}
+
     def __init__(self, net: Callable[[], nn.Module], optim: Callable[..., torch.optim.Optimizer],
                  sched: Callable | None = None):
         super().__init__()
@@ -52,6 +58,11 @@ class GaiaModule(L.LightningModule):
         """Build the network once (the hook runs at every stage and must be idempotent)."""
         if self.net is None:
             self.net = self.net_factory()
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Record which nets the checkpoint holds and under which state-dict prefixes."""
+        if self.component is not None:
+            checkpoint[NETS_RECORD] = {"component": self.component, "prefixes": dict(self.net_prefixes)}
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
         """Follow the load other processes put on the CPUs (gaia_app/utils/threads.py; a clock read between counts)."""

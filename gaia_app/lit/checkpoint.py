@@ -1,8 +1,8 @@
 """Rebuild a trained LightningModule from its checkpoint alone (no run dir, no Hydra config needed), safely.
 
 The file is read weights-only and its model config checked against the `_target_` allow-list
-(gaia_app/utils/checkpoint_io.py) before anything is instantiated. Inference does not come here: it builds
-the bare nets (gaia_app/pipelines/checkpoint_nets.py, or shipped weights in gaia_app/utils/shipped.py).
+(gaia_app/weights/checkpoints.py) before anything is instantiated. Inference does not come here: it builds
+the bare nets (gaia_app/weights/nets.py, or shipped weights in gaia_app/weights/folders.py).
 """
 
 from __future__ import annotations
@@ -12,20 +12,20 @@ from pathlib import Path
 import torch
 
 from gaia_app.lit.base import GaiaModule
-from gaia_app.utils.checkpoint_io import (  # noqa: F401
+from gaia_app.weights.checkpoints import (  # noqa: F401
     UnsafeCheckpointError,
     check_checkpoint_file,
     model_config,
     read_checkpoint,
     safe_torch_load,
 )
-from gaia_app.utils.shipped import (
+from gaia_app.weights.folders import (
     read_config,
     read_tensors,
     shipped_folder,
     weight_files,
 )
-from gaia_app.utils.targets import instantiate_checked
+from gaia_app.weights.targets import instantiate_checked
 
 
 def load_module(ckpt_path: str | Path, map_location: str | torch.device = "cpu") -> GaiaModule:
@@ -43,7 +43,7 @@ def load_net_weights(net: torch.nn.Module, path: str | Path, what: str, prefix: 
     """Copy the `{prefix}*` weights of a training checkpoint into `net`, in place (strict: same architecture).
     what: the checkpoint that `model.init_from` should name, for errors (e.g. "a stage-1 tokenizer checkpoint").
     component: also accept a weights folder (a path, or a shipped name such as "gaia2") holding
-    `<component>.safetensors`, whose tensors are named `<net key>.<parameter>` like a checkpoint's (utils/shipped.py):
+    `<component>.safetensors`, whose tensors are named `<net key>.<parameter>` like a checkpoint's (weights/folders.py):
     fine-tuning starts from shipped weights without a training checkpoint."""
     weights = initial_weights(path, what, prefix, component)
     try:

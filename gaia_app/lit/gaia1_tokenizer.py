@@ -67,6 +67,8 @@ class ImageTokenizerModule(AdversarialModule):
             whose net weights start a fresh fit (a fine-tune, e.g. with `weights.agents`); a resumed run keeps its own.
     """
 
+    component = "tokenizer"
+
     off_warnings = OFF_WARNINGS
 
     def __init__(

@@ -31,7 +31,7 @@ from gaia_app.lit.checkpoint import load_module
 from gaia_app.models.gaia1.decoder_tasks import TASKS, DecoderTask, TaskSampler, drop_tokens, make_task
 from gaia_app.models.gaia1.tokenizer import ImageTokenizer
 from gaia_app.models.gaia1.video_decoder import VideoDecoder
-from gaia_app.utils.shipped import load_nets, shipped_folder
+from gaia_app.weights.folders import load_nets, shipped_folder
 
 
 def load_tokenizer(source: str) -> ImageTokenizer:
@@ -56,6 +56,9 @@ class VideoDecoderModule(GaiaModule):
         token_dropout: p of dropping each conditioning token. l1_weight, l2_weight: loss weights.
         ema_decay: decay of the weight average. media_steps: sampler steps for the Rerun media.
     """
+
+    component = "video_decoder"
+    net_prefixes = {"net": "ema.module."}  # generation samples with the EMA weights (GAIA-1 §4.3)
 
     def __init__(self, net: Callable[[], VideoDecoder], optim: Callable, sched: Callable | None = None,
                  tokenizer_ckpt: str | None = None, schedule: Callable[[], CosineNoiseSchedule] = CosineNoiseSchedule,

@@ -39,6 +39,9 @@ class WorldModelModule(GaiaModule):
             other data with its own optimiser and schedule. A resumed run (ckpt_path) keeps its own weights.
     """
 
+    component = "world_model"
+    net_prefixes = {"net": "net.", "text_encoder": "text_encoder."}
+
     def __init__(self, net: Callable[[], WorldModel], optim: Callable, sched: Callable | None = None,
                  text_encoder: Callable[[], nn.Module] | None = None, init_from: str | None = None):
         super().__init__(net, optim, sched)

@@ -73,6 +73,8 @@ class VideoTokenizerModule(AdversarialModule):
         gan_start_step, adaptive_weight_max, gradient_clip_val: see AdversarialModule.
     """
 
+    component = "video_tokenizer"
+
     def __init__(
         self,
         net: Callable[[], VideoTokenizer],

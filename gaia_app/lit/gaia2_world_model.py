@@ -43,6 +43,9 @@ class LatentWorldModelModule(GaiaModule):
             synthetic pre-training: the net takes any number of cameras); None: random init.
     """
 
+    component = "latent_world_model"
+    net_prefixes = {"net": "net.", "text_encoder": "text_encoder."}
+
     def __init__(self, net: Callable[[], LatentWorldModel], optim: Callable, sched: Callable | None = None,
                  text_encoder: Callable[[], nn.Module] | None = None, tau_distribution: str = "logit_normal",
                  tau_mean: float = 0.0, tau_std: float = 1.0, context_prob: float = 0.5, sample_posterior: bool = True,

@@ -97,7 +97,7 @@ class Gaia1Pipeline:
                          image_size: tuple[int, int] | None = None, device: str = "cpu",
                          decoder_steps: int | None = None, decoder_blend: ImageVideoBlend | None = None,
                          decoder_sampler: str | None = None, **kwargs) -> Gaia1Pipeline:
-        """Load the three components' nets (pipelines/checkpoint_nets.py: weights-only, checked configs, no
+        """Load the three components' nets (weights/nets.py: weights-only, checked configs, no
         LightningModule); `image_size` defaults to the decoder's (required without one).
 
         decoder_steps: steps of the decoder run's own sampler (DDIM, §5.2: 50), None for its default.
@@ -107,13 +107,13 @@ class Gaia1Pipeline:
             `make_decoder_sampler`) or "antithetic_mean" (that mean over pairs of opposite draws).
         kwargs: the constructor's sampler, guidance, upsample and rate.
         """
-        from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
+        from gaia_app.weights.nets import checkpoint_nets
 
         tok = checkpoint_nets(tokenizer, "tokenizer", "tokenizer_ckpt", device)[0]["net"]
         wm = checkpoint_nets(world_model, "world_model", "world_model_ckpt", device)[0]
         video = None
         if decoder is not None:
-            nets, config = checkpoint_nets(decoder, "video_decoder", "decoder_ckpt", device)
+            nets, config, _ = checkpoint_nets(decoder, "video_decoder", "decoder_ckpt", device)
             net = nets["net"]
             image_size = image_size or tuple(net.image_size)
             video = VideoDecodingPipeline(net, *decoder_sampling(config, decoder_steps, decoder_sampler or "ddim"),
@@ -127,12 +127,12 @@ class Gaia1Pipeline:
     def from_weights(cls, folder: str | Path, device: str = "cpu", video_decoder: bool = True,
                      decoder_steps: int | None = None, decoder_blend: ImageVideoBlend | None = None, upsample: int = 2,
                      decoder_sampler: str | None = None, **kwargs) -> Gaia1Pipeline:
-        """Tokenizer and world model from a shipped weights folder (gaia_app/utils/shipped.py), e.g.
+        """Tokenizer and world model from a shipped weights folder (gaia_app/weights/folders.py), e.g.
         gaia_app/weights/gaia1, and its video decoder when it has one and `video_decoder` (else frames are decoded
         one by one by the tokenizer at the world model's rate). decoder_sampler, decoder_steps: None for the setting
         the decoder was exported with (video_decoder.yaml info.sampler, info.steps); decoder_blend, upsample: as in
         from_checkpoints. kwargs: sampler, guidance."""
-        from gaia_app.utils.shipped import load_nets, weight_files
+        from gaia_app.weights.folders import load_nets, weight_files
 
         tokenizer, tokenizer_info = load_nets(folder, "tokenizer", device)
         world_model, world_info = load_nets(folder, "world_model", device)
@@ -287,7 +287,7 @@ def decoder_sampling(config: dict, steps: int | None,
     """(noise schedule, sampler, frames T', context frames) of a video decoder's stored config (model.schedule,
     model.sampler with `steps` if given, model.frames, model.context_frames), as VideoDecoderModule builds them;
     kind "one_step_mean" replaces the sampler (`make_decoder_sampler`, `steps` draws, 8 if None)."""
-    from gaia_app.utils.targets import DIFFUSION_TARGETS, instantiate_checked
+    from gaia_app.weights.targets import DIFFUSION_TARGETS, instantiate_checked
 
     where = "the video decoder checkpoint's model config"
     schedule = instantiate_checked(config["schedule"], f"{where}: schedule", DIFFUSION_TARGETS)() \

@@ -28,11 +28,11 @@ from gaia_app.diffusion.flow_matching import FlowSampler
 from gaia_app.models.gaia2.conditioning import WorldConditions, batch_conditions, caption_vector
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
 from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer
-from gaia_app.pipelines.checkpoint_nets import checkpoint_nets
 from gaia_app.pipelines.gaia2_edits import InpaintRegion, cut_steps
 from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
 from gaia_app.pipelines.gaia2_world_model import Guidance, LatentWorldModelPipeline
-from gaia_app.utils.shipped import load_nets, shipped_folder
+from gaia_app.weights.folders import load_nets, shipped_folder
+from gaia_app.weights.nets import checkpoint_nets
 
 
 def check_metadata(overrides: Mapping[str, Any], fields: Sequence[str]) -> None:
@@ -117,7 +117,7 @@ class Gaia2Pipeline:
                          resize_mode: str = "crop", fps: float | None = None) -> Gaia2Pipeline:
         """From the training checkpoints of a video tokenizer and a latent world model (read weights-only)."""
         tokenizer = checkpoint_nets(tokenizer_ckpt, "video_tokenizer", "tokenizer_ckpt", device)[0]["net"]
-        nets, config = checkpoint_nets(world_model_ckpt, "latent_world_model", "world_model_ckpt", device)
+        nets, config, _ = checkpoint_nets(world_model_ckpt, "latent_world_model", "world_model_ckpt", device)
         return cls(tokenizer, nets["net"], height, width, sampler, guidance, resize_mode, fps,
                    nets.get("text_encoder"), float(config.get("latent_scale", 1.0)))
 

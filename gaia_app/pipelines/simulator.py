@@ -184,7 +184,7 @@ class DrivingSimulator(gymnasium.Env):
 
 def load_pipeline(weights: str | Path = "gaia1", device: str = "cpu", video_decoder: bool = False) -> Gaia1Pipeline:
     """A Gaia1Pipeline from a weights folder: a shipped name ("gaia1": gaia_app/weights/gaia1) or a path."""
-    from gaia_app.utils.shipped import shipped_folder
+    from gaia_app.weights.folders import shipped_folder
 
     if not isinstance(weights, (str, Path)):
         raise TypeError(f"weights={weights!r}: expected a shipped weights name (e.g. 'gaia1') or a folder path")

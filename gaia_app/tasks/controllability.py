@@ -68,7 +68,7 @@ from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.gaia1_inputs import future_actions, future_frames
 from gaia_app.tasks.rollout import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
-from gaia_app.utils.shipped import shipped_folder
+from gaia_app.weights.folders import shipped_folder
 
 SOURCE_FPS = 25.0
 # the adherence metrics with targets: contrast errors of speed (accelerate vs brake) and curvature (left vs right)

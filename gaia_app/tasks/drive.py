@@ -45,7 +45,6 @@ from gaia_app.eval.controllability import load_probes, probed_actions
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.simulator import DrivingSimulator
 from gaia_app.utils.run_dir import atomic_write_text
-from gaia_app.utils.shipped import shipped_folder
 from gaia_app.utils.threads import apply_thread_policy
 from gaia_app.viz.screenshot import capture_live, spawn_headless
 from gaia_app.viz.viewer import (
@@ -56,6 +55,7 @@ from gaia_app.viz.viewer import (
     speaks_grpc,
     stop_viewer,
 )
+from gaia_app.weights.folders import shipped_folder
 
 
 def estimated_speed(probe: torch.nn.Module, previous: np.ndarray, frame: np.ndarray) -> float:

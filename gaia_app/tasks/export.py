@@ -1,4 +1,4 @@
-"""`generate.py mode=export`: a shipped-weights folder (gaia_app/utils/shipped.py) from training checkpoints.
+"""`generate.py mode=export`: a shipped-weights folder (gaia_app/weights/folders.py) from training checkpoints.
 
     python generate.py mode=export tokenizer_ckpt=<tokenizer last.ckpt> world_model_ckpt=<world model last.ckpt> \\
         controllability.probes=<probes folder> out_dir=gaia_app/weights/gaia1
@@ -30,9 +30,9 @@ from typing import Any
 from omegaconf import DictConfig
 
 from gaia_app.eval.controllability import PROBE_INFO, PROBE_WEIGHTS, load_probes
-from gaia_app.pipelines.checkpoint_nets import COMPONENTS, component_of
-from gaia_app.utils.checkpoint_io import read_checkpoint
-from gaia_app.utils.shipped import export_component, read_config, shipped_folder, weight_files
+from gaia_app.weights.checkpoints import read_checkpoint
+from gaia_app.weights.folders import export_component, read_config, shipped_folder, weight_files
+from gaia_app.weights.nets import checkpoint_component, held_by
 
 
 def export_sources(cfg: DictConfig, mode: str, tokenizer: str, tokenizer_hint: str,
@@ -92,13 +92,11 @@ def copy_component(source: Path, out: Path, component: str) -> str:
 
 def checked_checkpoint(path: str, role: str, component: str) -> dict[str, Any]:
     """The checkpoint dict of `path` (read weights-only), refused with a message naming `role` unless it holds a
-    `component` of pipelines/checkpoint_nets.COMPONENTS (e.g. "video_tokenizer")."""
+    `component` (e.g. "video_tokenizer", by the record the checkpoint carries, weights/nets.py)."""
     checkpoint = read_checkpoint(path)
-    config = (checkpoint.get("hyper_parameters") or {}).get("model_cfg") or {}
-    if component_of(config) != component:
-        held = str(config.get("_target_", "unknown")).rsplit(".", 1)[-1]
-        raise TypeError(f"{role}={path} holds a {held} checkpoint, expected a "
-                        f"{COMPONENTS[component][0].rsplit('.', 1)[-1]}")
+    if checkpoint_component(checkpoint, path) != component:
+        raise TypeError(f"{role}={path} holds a {held_by(checkpoint, path)} checkpoint, expected a {component} "
+                        "checkpoint")
     return checkpoint
 
 

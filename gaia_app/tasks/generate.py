@@ -35,7 +35,6 @@ from gaia_app.data.transforms import to_float, to_uint8
 from gaia_app.data.video_io import write_video
 from gaia_app.models.gaia1.tokenizer import ImageTokenizer
 from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer
-from gaia_app.pipelines.checkpoint_nets import checkpoint_nets, component_of
 from gaia_app.pipelines.gaia1_tokenizer import (
     ReconstructionOutput,
     TokenCachePipeline,
@@ -55,8 +54,9 @@ from gaia_app.tasks.settings import GENERATE_RULES, check_settings
 from gaia_app.tasks.showcase import showcase
 from gaia_app.utils.locks import folder_lock
 from gaia_app.utils.run_dir import atomic_write_text, save_resolved_config
-from gaia_app.utils.shipped import load_nets, shipped_folder
 from gaia_app.viz.media import log_token_map, to_hwc_uint8
+from gaia_app.weights.folders import load_nets, shipped_folder
+from gaia_app.weights.nets import checkpoint_nets
 
 log = logging.getLogger(__name__)
 
@@ -228,7 +228,7 @@ MODES = {"reconstruct": {"tokenizer": reconstruct, "video_tokenizer": reconstruc
 
 def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """The single-checkpoint modes of `MODES` on the tokenizer net of `cfg.ckpt` (built from the checkpoint's
-    tensors and checked config, pipelines/checkpoint_nets.py), or mode=tokenize / reconstruct / encode on the
+    tensors and checked config, weights/nets.py), or mode=tokenize / reconstruct / encode on the
     tokenizer of `cfg.weights`."""
     if cfg.mode not in MODES:
         expected = sorted(MODES) + list(ROLLOUT_MODES) + ["controllability", "evaluate", "export", "showcase"]
@@ -241,10 +241,10 @@ def run_component(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         raise ValueError(f"mode={cfg.mode} needs ckpt=<checkpoint of a trained tokenizer>")
     runs = MODES[cfg.mode]
     try:
-        nets, config = checkpoint_nets(cfg.ckpt, tuple(runs), "ckpt", cfg.device)
+        loaded = checkpoint_nets(cfg.ckpt, tuple(runs), "ckpt", cfg.device)
     except TypeError as error:
         raise TypeError(f"mode={cfg.mode}: {error}") from None
-    return runs[component_of(config)](cfg, nets["net"], run_dir)
+    return runs[loaded.component](cfg, loaded.nets["net"], run_dir)
 
 
 def shipped_tokenizer(cfg: DictConfig, component: str = "tokenizer") -> ImageTokenizer | VideoTokenizer:

@@ -38,9 +38,9 @@ from gaia_app.pipelines.gaia1_inputs import (
     future_frames,
 )
 from gaia_app.utils.run_dir import atomic_write_text
-from gaia_app.utils.shipped import shipped_folder
 from gaia_app.viz.blueprints import rollout_blueprint
 from gaia_app.viz.media import log_token_map, to_hwc_uint8, video_grid
+from gaia_app.weights.folders import shipped_folder
 
 CONTEXT_COLOUR, FUTURE_COLOUR = (40, 200, 80), (230, 60, 40)  # top stripe: context frame / generated frame
 

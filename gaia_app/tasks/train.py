@@ -18,9 +18,9 @@ from omegaconf import DictConfig, OmegaConf
 from gaia_app.lit.compile import CompileNet
 from gaia_app.lit.strategies import build_strategy
 from gaia_app.tasks.settings import TRAIN_RULES, check_settings
-from gaia_app.utils.checkpoint_io import check_checkpoint_file
 from gaia_app.utils.run_dir import save_resolved_config
 from gaia_app.viz.rerun_logger import rerun_logger_of
+from gaia_app.weights.checkpoints import check_checkpoint_file
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +34,7 @@ def instantiate_list(node: DictConfig | None) -> list[Any]:
 
 def resume_path(ckpt_path: str | None, run_dir: Path) -> str | None:
     """`ckpt_path=last` resumes from this run dir's last.ckpt if present (and says so when it starts fresh); a
-    path must exist. The checkpoint is checked to load safely (weights only, utils/checkpoint_io.py) before Lightning
+    path must exist. The checkpoint is checked to load safely (weights only, weights/checkpoints.py) before Lightning
     reads it."""
     if ckpt_path in (None, ""):
         return None

@@ -2,7 +2,7 @@
 
 A config from a file is handed to Hydra's `instantiate`, which resolves OmegaConf interpolations before it builds
 anything. An interpolation is code: `${oc.create:{_target_: ...}}` makes a new node with a `_target_` *after* the
-`_target_` allow-list (gaia_app/utils/targets.py) read the text, and `${oc.env:...}` copies environment variables
+`_target_` allow-list (gaia_app/weights/targets.py) read the text, and `${oc.env:...}` copies environment variables
 (tokens, paths) into net arguments. gaia_app writes every config it stores fully resolved (`tasks.train` saves
 `OmegaConf.to_container(cfg.model, resolve=True)`, exports write plain YAML), so a stored config never needs one:
 any string holding `${` is refused, in keys and values, at every depth.

@@ -139,8 +139,8 @@ def test_init_from_a_weights_folder_starts_from_its_world_model(token_cache: Pat
     """model.init_from=<weights folder> (e.g. the shipped gaia1) fine-tunes from world_model.safetensors, with no
     training checkpoint; a folder without that component is named."""
     from gaia_app.lit.checkpoint import load_module
-    from gaia_app.utils.checkpoint_io import read_checkpoint
-    from gaia_app.utils.shipped import export_component
+    from gaia_app.weights.checkpoints import read_checkpoint
+    from gaia_app.weights.folders import export_component
 
     overrides = ["experiment=gaia1/world_model_tiny", "trainer=tiny", "logger=csv", "extras.print_config=false",
                  "trainer.limit_val_batches=1", f"data.path={token_cache}", "data.frame_stride=1",

@@ -7,7 +7,7 @@ A checkpoint is either Lightning's single file or, from a sharded run (trainer=f
 Checkpoints travel between users, so loading one must never run code: every file is unpickled with
 `weights_only=True` (tensors and plain containers only), the shards' `.metadata` pickle by an unpickler that
 builds only torch.distributed.checkpoint's metadata types, and the stored model config is returned only after
-every `_target_` in it passed `gaia_app.utils.targets.check_targets`. Rebuilding a LightningModule from it
+every `_target_` in it passed `gaia_app.weights.targets.check_targets`. Rebuilding a LightningModule from it
 (training resume, reports) is `gaia_app.lit.checkpoint.load_module`.
 """
 
@@ -20,8 +20,8 @@ from typing import Any
 
 import torch
 
-from gaia_app.utils.targets import check_targets
 from gaia_app.utils.untrusted import check_plain
+from gaia_app.weights.targets import check_targets
 
 SHARDED_META = "meta.pt"  # what Lightning writes beside the shards: hyper-parameters, loop state
 DCP_METADATA = ".metadata"  # torch.distributed.checkpoint's index of the shards, a pickle

@@ -10,7 +10,7 @@ no discriminator); `<component>.yaml` holds how to build them:
     info: {image_size: [64, 112], rate: 6.25, ...}
 
 Tensors are named `<net>.<parameter>`. Nothing is unpickled, and a YAML may only build nets and encoders of gaia_app
-(gaia_app/utils/targets.py), so a weights folder from elsewhere cannot run code on load. `export_component` writes
+(gaia_app/weights/targets.py), so a weights folder from elsewhere cannot run code on load. `export_component` writes
 both files from a training checkpoint of this project; `load_nets` reads them back.
 """
 
@@ -25,10 +25,10 @@ from omegaconf import OmegaConf
 from torch import nn
 
 from gaia_app.utils.run_dir import atomic_write_bytes, atomic_write_text
-from gaia_app.utils.targets import UnsafeTargetError, check_targets, instantiate_checked
 from gaia_app.utils.untrusted import check_finite, dump_plain_yaml, read_untrusted_yaml
+from gaia_app.weights.targets import UnsafeTargetError, check_targets, instantiate_checked
 
-WEIGHTS_ROOT = Path(__file__).resolve().parents[1] / "weights"
+WEIGHTS_ROOT = Path(__file__).resolve().parent
 FORMAT = 1
 STORAGE_TYPES = {"float16": torch.float16, "float32": torch.float32}
 # shipped weights hold nets only: their YAML may build nets and text encoders, nothing else
