@@ -19,7 +19,7 @@ import time
 import torch
 
 from gaia_app.eval.controllability import probe_clips
-from gaia_app.tasks.controllability import commanded_actions, driven_clip, world
+from gaia_app.protocols.controllability import commanded_actions, driven_clip, world
 
 RATE, STEPS, T0 = 6.25, 12, 4
 

@@ -31,7 +31,7 @@ from gaia_app.eval.controllability import load_probes, probe_clips
 from gaia_app.models.probes import ATTRIBUTES
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.gaia1_inputs import future_frames
-from gaia_app.tasks.controllability import (
+from gaia_app.protocols.controllability import (
     rollout_frames,
     share_row,
     tokenized,

@@ -1,6 +1,6 @@
 r"""GAIA-2 action adherence of several weights folders, or guidance scales, side by side in one run: one action
 probe, the same held-out scenes, commands and noise for every folder and scale. The table is the one of
-`generate.py model=gaia2 mode=evaluate` (gaia_app/tasks/gaia2_actions.py) without the other tables, so two versions
+`generate.py model=gaia2 mode=evaluate` (gaia_app/protocols/gaia2_actions.py) without the other tables, so two versions
 of the weights compare in about a third of two evaluations' time. `--scales` replaces model.guidance.scale by each
 of its values in turn (0: unguided), `--intervals` model.guidance.interval (the flow times at which a solver step is
 guided). Everything after `--` is a Hydra override of generate.yaml.
@@ -33,11 +33,11 @@ from omegaconf import DictConfig
 from gaia_app.eval.intervals import mean_interval
 from gaia_app.eval.report import ARROWS
 from gaia_app.pipelines.gaia2_edits import cut_steps
-from gaia_app.tasks import gaia2_actions
-from gaia_app.tasks.controllability import CONTRASTS
-from gaia_app.tasks.evaluate import check_metrics
-from gaia_app.tasks.gaia2_evaluate import fidelity_table, rig_samples
-from gaia_app.tasks.gaia2_generate import load_gaia2
+from gaia_app.protocols import gaia2_actions
+from gaia_app.protocols.controllability import CONTRASTS
+from gaia_app.protocols.evaluate import check_metrics
+from gaia_app.protocols.gaia2_evaluate import fidelity_table, rig_samples
+from gaia_app.protocols.loading import load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
 
 CONF = Path(__file__).resolve().parents[1] / "conf"

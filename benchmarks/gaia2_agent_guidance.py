@@ -1,5 +1,5 @@
 r"""GAIA-2 agent control under guidance, alone: the agent table of `generate.py model=gaia2 mode=evaluate`
-(gaia_app/tasks/gaia2_evaluate.py) without the fidelity, action and cross-view tables, in about a third of an
+(gaia_app/protocols/gaia2_evaluate.py) without the fidelity, action and cross-view tables, in about a third of an
 evaluation's time. Besides the pooled IoU with the agent masks it splits where guidance acts: the IoU inside the
 conditioning boxes, and the share of the area outside every box that the probe calls agent. Spatially selective CFG
 guides the tokens inside the boxes only; plain CFG also guides the rest of the scene away from the agents-dropped
@@ -28,8 +28,8 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
 from gaia_app.pipelines.gaia2_edits import cut_steps
-from gaia_app.tasks import gaia2_evaluate
-from gaia_app.tasks.gaia2_generate import load_gaia2
+from gaia_app.protocols import gaia2_evaluate
+from gaia_app.protocols.loading import load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
 
 CONF = Path(__file__).resolve().parents[1] / "conf"

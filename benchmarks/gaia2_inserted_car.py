@@ -37,7 +37,8 @@ from gaia_app.eval.agent_fidelity import fidelity_frames
 from gaia_app.eval.agent_iou import load_agent_probe, predicted_agents
 from gaia_app.eval.intervals import mean_interval, ratio_interval, share_interval
 from gaia_app.pipelines.gaia2_edits import with_added_agents
-from gaia_app.tasks.gaia2_generate import commanded, latent_steps, load_gaia2, sample, source_clip
+from gaia_app.protocols.gaia2_context import commanded, latent_steps, sample, source_clip
+from gaia_app.protocols.loading import load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
 
 CONF = Path(__file__).resolve().parents[1] / "conf"

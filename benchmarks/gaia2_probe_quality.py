@@ -1,4 +1,4 @@
-r"""Can the GAIA-2 action probe read the commands? Model-free check of gaia_app/tasks/gaia2_actions.py.
+r"""Can the GAIA-2 action probe read the commands? Model-free check of gaia_app/protocols/gaia2_actions.py.
 
 Trains the inverse-dynamics probe as `generate.py model=gaia2 mode=evaluate` does (the settings of
 `model.evaluate`, given as Hydra overrides), then scores the held-out scenes without any world model: the ceiling
@@ -27,10 +27,10 @@ from hydra.core.global_hydra import GlobalHydra
 
 from gaia_app.data.transforms import to_float
 from gaia_app.eval.controllability import probe_clips
-from gaia_app.tasks import gaia2_actions
-from gaia_app.tasks.controllability import CONTRASTS, commanded_actions, error_row
-from gaia_app.tasks.gaia2_evaluate import rig_samples
-from gaia_app.tasks.gaia2_generate import load_gaia2
+from gaia_app.protocols import gaia2_actions
+from gaia_app.protocols.controllability import CONTRASTS, commanded_actions, error_row
+from gaia_app.protocols.gaia2_evaluate import rig_samples
+from gaia_app.protocols.loading import load_gaia2
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 TEMPORAL = 4  # frames per latent step of the shipped GAIA-2 tokenizer: the evaluation's frames are model.steps · 4

@@ -1,4 +1,4 @@
-"""Can the controllability probes read the controls? Model-free check of gaia_app/tasks/controllability.py.
+"""Can the controllability probes read the controls? Model-free check of gaia_app/protocols/controllability.py.
 
 Trains the probes as `generate.py mode=controllability` does, then scores held-out synthetic contexts without any
 world model: the ceiling (scenes re-simulated with each commanded action) against the reference (the real
@@ -20,7 +20,7 @@ import torch
 
 from gaia_app.eval.controllability import probe_clips, save_probes, train_probes
 from gaia_app.models.probes import ATTRIBUTES
-from gaia_app.tasks.controllability import (
+from gaia_app.protocols.controllability import (
     CONTRASTS,
     commanded_actions,
     error_row,

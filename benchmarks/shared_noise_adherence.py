@@ -1,6 +1,6 @@
 r"""GAIA-1 action adherence with and without shared sampling noise, side by side over several sampling seeds.
 
-The action table of `generate.py mode=controllability` (gaia_app/tasks/controllability.py) contrasts two futures of
+The action table of `generate.py mode=controllability` (gaia_app/protocols/controllability.py) contrasts two futures of
 one context (accelerate vs brake, left vs right). Sampled independently, the two futures differ by their commands
 and by sampling luck; with `controllability.shared_noise` they share every Gumbel draw (counterfactual futures,
 ar_sampling.shared_gumbel), as the ceiling's re-simulations share their world. Each future's own distribution is
@@ -31,7 +31,7 @@ from tqdm import tqdm
 from gaia_app.eval.controllability import contrast_pairs, probe_clips
 from gaia_app.eval.intervals import mean_interval
 from gaia_app.pipelines.gaia1_inputs import future_frames
-from gaia_app.tasks.controllability import (
+from gaia_app.protocols.controllability import (
     CONTRASTS,
     commanded_actions,
     context_groups,
@@ -41,7 +41,7 @@ from gaia_app.tasks.controllability import (
     rollout_frames,
     world_clips,
 )
-from gaia_app.tasks.rollout import load_pipeline
+from gaia_app.protocols.loading import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 
 CONF = Path(__file__).resolve().parents[1] / "conf"

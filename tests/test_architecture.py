@@ -11,10 +11,10 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "gaia_app"
 BELOW_MODELS = {"nn", "utils"}
-# package → the gaia_app packages it may import (besides itself): nn ← models, diffusion (sees nets through
-# protocols) ← lit ← pipelines ← tasks; data, eval, encoders below pipelines; weights (loading: checkpoints, weights
-# folders, the _target_ allow-list) just above utils; utils at the floor. Inference never builds a LightningModule,
-# so pipelines do not import lit.
+# package → the gaia_app packages it may import (besides itself), as in DESIGN.md §3: nn ← models, diffusion (sees
+# nets through protocols) ← lit ← pipelines ← protocols ← tasks; data, eval, encoders below pipelines; weights
+# (loading: checkpoints, weights folders, the _target_ allow-list) just above utils; utils at the floor. Inference
+# never builds a LightningModule, so pipelines do not import lit; evaluation protocols do not import tasks.
 ALLOWED = {
     "utils": set(),
     "weights": {"utils"},
@@ -27,7 +27,10 @@ ALLOWED = {
     "eval": {"nn", "models", "diffusion", "encoders", "data", "weights", "utils"},
     "lit": {"nn", "models", "diffusion", "encoders", "data", "eval", "viz", "weights", "utils"},
     "pipelines": {"nn", "models", "diffusion", "encoders", "data", "eval", "viz", "weights", "utils"},
-    "tasks": {"nn", "models", "diffusion", "encoders", "data", "eval", "viz", "weights", "utils", "lit", "pipelines"},
+    "protocols": {"nn", "models", "diffusion", "encoders", "data", "eval", "viz", "weights", "utils", "lit",
+                  "pipelines"},
+    "tasks": {"nn", "models", "diffusion", "encoders", "data", "eval", "viz", "weights", "utils", "lit", "pipelines",
+              "protocols"},
 }
 LAYER = ALLOWED
 PURE_TORCH = {"nn", "models", "diffusion"}
@@ -90,3 +93,11 @@ def test_samplers_depend_on_protocols_not_on_models() -> None:
     for path in sorted((PACKAGE / "diffusion").glob("*.py")):
         bad = [name for name in imports_of(path) if name.startswith("gaia_app.models")]
         assert not bad, f"{path.name} imports {bad}"
+
+
+def test_benchmarks_never_import_tasks() -> None:
+    """DESIGN.md §3: benchmarks/ run the evaluation protocols (gaia_app/protocols) as generate.py does, never its
+    task layer, so a protocol has one home that both use."""
+    for path in sorted((PACKAGE.parent / "benchmarks").glob("*.py")):
+        bad = [name for name in imports_of(path) if name == "gaia_app.tasks" or name.startswith("gaia_app.tasks.")]
+        assert not bad, f"benchmarks/{path.name} imports {bad}"

@@ -31,7 +31,7 @@ from gaia_app.eval.intervals import (
     t_quantile,
 )
 from gaia_app.models.probes import ATTRIBUTES, InverseDynamicsProbe, SceneAttributeProbe
-from gaia_app.tasks.controllability import (
+from gaia_app.protocols.controllability import (
     drive,
     error_row,
     probe_training_data,

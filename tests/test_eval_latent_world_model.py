@@ -10,7 +10,7 @@ import sys
 import pytest
 import torch
 
-from gaia_app.tasks import gaia2_evaluate
+from gaia_app.protocols import gaia2_evaluate
 from tests.conftest import ROOT
 from tests.test_gaia2_generate import checkpoints  # noqa: F401  (a fixture)
 

@@ -1,4 +1,4 @@
-"""The GAIA-2 action table's ceiling (tasks/gaia2_actions.py): the rig world re-simulated with commanded actions."""
+"""The GAIA-2 action table's ceiling (protocols/gaia2_actions.py): the rig world re-simulated with commanded actions."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from gaia_app.tasks.gaia2_actions import (
+from gaia_app.protocols.gaia2_actions import (
     mirror_order,
     probe_mirror,
     probe_views,

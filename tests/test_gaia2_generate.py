@@ -18,7 +18,7 @@ from gaia_app.eval.report import combined_table
 from gaia_app.pipelines.gaia1_inputs import future_actions
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline, check_metadata, with_labels
 from gaia_app.pipelines.gaia2_edits import with_added_agents
-from gaia_app.tasks.gaia2_evaluate import box_masks
+from gaia_app.protocols.gaia2_evaluate import box_masks
 from gaia_app.tasks.gaia2_generate import left_to_right, pixel_boxes
 from gaia_app.tasks.generate import generate
 from gaia_app.tasks.train import train
@@ -259,7 +259,7 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     assert results["actions"]["probe_stride"] == 2 and results["actions"]["scored_steps"] == 6
     assert results["actions"]["probe_cameras"] == "rig" and "Action adherence (every camera of the rig," in table
 
-    # one table with a GAIA-1 evaluation run (its evaluation.json layout, tasks/evaluate.py)
+    # one table with a GAIA-1 evaluation run (its evaluation.json layout, protocols/evaluate.py)
     gaia1 = tmp_path / "gaia1"
     gaia1.mkdir()
     row = {"psnr": 20.0, "ssim": 0.5, "fvmd": 3.0, "agent_iou": 0.2, "lpips": 0.3}

@@ -234,8 +234,8 @@ def test_command_discrimination_scores_real_futures_teacher_forced(checkpoints, 
     """Within one window the per-frame nats come from one forward and equal the frame-by-frame teacher forcing of
     token_log_perplexity; a command contrasted with itself discriminates nothing, and another one changes the score."""
     from gaia_app.eval.token_perplexity import token_log_perplexity
-    from gaia_app.tasks.controllability import command_discrimination, future_nats
-    from gaia_app.tasks.rollout import load_pipeline
+    from gaia_app.protocols.controllability import command_discrimination, future_nats
+    from gaia_app.protocols.loading import load_pipeline
 
     cfg = compose_config("generate", [f"{k}={v}" for k, v in checkpoints.items() if k != "decoder_ckpt"] + [
         "extras.print_config=false", *SIZE], tmp_path)
@@ -315,7 +315,7 @@ def test_evaluate_mode_bad_settings_fail_before_any_work(checkpoints, tmp_path: 
 
 
 def test_evaluate_scores_a_perfect_future_perfectly_and_a_frozen_one_worse() -> None:
-    from gaia_app.tasks.evaluate import score
+    from gaia_app.protocols.evaluate import score
 
     g = torch.Generator().manual_seed(0)
     base = torch.nn.functional.avg_pool2d(torch.rand(4, 3, 40, 72, generator=g) * 2 - 1, 5, 1, 2)
@@ -346,7 +346,7 @@ def test_staging_replaces_the_folders_of_an_earlier_run_and_leaves_them_on_error
 
 def test_decoder_blend_config_reaches_the_decoder_and_changes_its_frames(checkpoints, tmp_path: Path) -> None:
     """decoder_blend (GAIA-1 §5.2 eq. 4) from generate.py's config: p = 1 blends every step, p = 0 none."""
-    from gaia_app.tasks.rollout import load_pipeline
+    from gaia_app.protocols.loading import load_pipeline
 
     def decoded(probability: float) -> tuple[object, torch.Tensor]:
         cfg = compose_config("generate", [*(f"{k}={v}" for k, v in checkpoints.items()), "decoder_steps=2",
@@ -368,7 +368,7 @@ def test_decoder_blend_config_reaches_the_decoder_and_changes_its_frames(checkpo
 
 def test_decoder_sampler_config_picks_ddim_or_the_one_step_mean(checkpoints, tmp_path: Path) -> None:
     from gaia_app.diffusion.samplers import DDIMSampler, OneStepMeanSampler
-    from gaia_app.tasks.rollout import load_pipeline
+    from gaia_app.protocols.loading import load_pipeline
 
     def sampler(*overrides: str):
         cfg = compose_config("generate", [*(f"{k}={v}" for k, v in checkpoints.items()), "extras.print_config=false",

@@ -8,7 +8,7 @@ import torch
 from gaia_app.diffusion.ar_sampling import AutoregressiveSampler, TokenPicker, shared_gumbel
 from gaia_app.models.gaia1.world_model import WorldModel
 from gaia_app.pipelines.gaia1_world_model import WorldModelRolloutPipeline, future_groups
-from gaia_app.tasks.controllability import context_groups
+from gaia_app.protocols.controllability import context_groups
 
 V, T, M, N, E = 16, 4, 2, 6, 8
 PROBS = torch.tensor([0.4, 0.25, 0.15, 0.1, 0.06, 0.04])

@@ -117,7 +117,7 @@ def test_weights_and_checkpoints_together_are_refused(checkpoints, shipped: Path
 
 
 def test_cross_entropy_report_scores_every_mode_against_the_baselines(checkpoints, tmp_path: Path) -> None:  # noqa: F811
-    from gaia_app.tasks.world_model_report import main
+    from gaia_app.protocols.world_model_report import main
 
     tokens = Path(checkpoints["world_model_ckpt"]).parents[2] / "tokens"
     main(["--ckpt", str(checkpoints["world_model_ckpt"]), "--tokens", str(tokens), "--out", str(tmp_path)])
@@ -256,7 +256,7 @@ def test_generation_from_checkpoints_builds_no_lightning_module(checkpoints, mon
 def test_weights_with_a_video_decoder_decode_with_its_ema_weights(checkpoints, tmp_path: Path) -> None:  # noqa: F811
     """mode=export with decoder_ckpt= adds video_decoder.{safetensors,yaml} (the EMA weights); weights= runs decode
     with it unless video_decoder=false, and the controllability protocol never does."""
-    from gaia_app.tasks.rollout import load_pipeline
+    from gaia_app.protocols.loading import load_pipeline
 
     results = run(checkpoints, tmp_path / "export", "mode=export", f"out_dir={tmp_path / 'weights'}")
     assert results["video_decoder"]["bytes"] > 0
@@ -308,7 +308,7 @@ def test_floor_calibration_reads_real_clips_and_each_picker(shipped: Path, tmp_p
 @pytest.mark.parametrize("shared", [True, False])
 def test_showcase_futures_share_their_noise_when_asked(shipped: Path, tmp_path: Path, shared: bool) -> None:
     """Two identical commands: with showcase.shared_noise their futures are one future; without, two draws."""
-    from gaia_app.tasks.rollout import load_pipeline
+    from gaia_app.protocols.loading import load_pipeline
     from gaia_app.tasks.showcase import command_panel
 
     cfg = compose_config("generate", ["mode=showcase", f"weights={shipped}", "context.frames=2", "seconds=0.5",
@@ -322,7 +322,7 @@ def test_showcase_futures_share_their_noise_when_asked(shipped: Path, tmp_path: 
 def test_showcase_prompt_rollouts_share_their_noise_when_asked(shipped: Path, tmp_path: Path, shared: bool) -> None:
     """The same prompt twice: with showcase.shared_noise one rollout; without, two draws. Different prompts (and no
     prompt) from the same noise still differ."""
-    from gaia_app.tasks.rollout import load_pipeline
+    from gaia_app.protocols.loading import load_pipeline
     from gaia_app.tasks.showcase import prompt_panel
 
     cfg = compose_config("generate", ["mode=showcase", f"weights={shipped}", "seconds=0.5",
@@ -339,7 +339,7 @@ def test_showcase_prompt_rollouts_share_their_noise_when_asked(shipped: Path, tm
 def test_controllability_shares_noise_within_a_context_when_asked(shipped: Path, tmp_path: Path, monkeypatch,
                                                                   shared: bool) -> None:
     """controllability.shared_noise hands the model row one noise group per context (command-major batch)."""
-    from gaia_app.tasks import controllability
+    from gaia_app.protocols import controllability
 
     groups = []
     original = controllability.rollout_frames

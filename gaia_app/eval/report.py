@@ -1,6 +1,6 @@
 """One table from several evaluation runs: GAIA-1 (`generate.py mode=evaluate`, evaluation.json) and GAIA-2
 (`generate.py model=gaia2 mode=evaluate`, gaia2_evaluation.json) score rollouts against real continuations with
-the same metrics (tasks/evaluate.score); this merges their rows (benchmarks/evaluate_models.py prints it).
+the same metrics (protocols/evaluate.score); this merges their rows (benchmarks/evaluate_models.py prints it).
 """
 
 from __future__ import annotations

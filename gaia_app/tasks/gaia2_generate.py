@@ -29,140 +29,22 @@ from typing import Any
 import numpy as np
 import rerun as rr
 import torch
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from gaia_app.data.clip import AGENT_CATEGORIES, Clip, ClipError
+from gaia_app.data.clip import AGENT_CATEGORIES, Clip
 from gaia_app.data.collate import pad_agents
-from gaia_app.data.latent_cache import LatentClip, find_latent_clips, read_latent_clip
+from gaia_app.data.latent_cache import LatentClip
 from gaia_app.data.transforms import to_uint8
 from gaia_app.data.video_io import write_video
 from gaia_app.models.gaia2.conditioning import AgentBoxes3d, project_boxes
-from gaia_app.pipelines.gaia1_inputs import folder_clip, future_actions
-from gaia_app.pipelines.gaia2 import Gaia2Output, Gaia2Pipeline, check_metadata, with_labels
-from gaia_app.pipelines.gaia2_edits import InpaintRegion, cut_steps, with_added_agents
+from gaia_app.pipelines.gaia2 import Gaia2Pipeline
+from gaia_app.protocols.gaia2_context import conditioned_clip, plain, sample
+from gaia_app.protocols.loading import load_gaia2
 from gaia_app.tasks.rollout import CONTEXT_COLOUR, FUTURE_COLOUR, staging
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.viz.blueprints import rig_tabs_blueprint
 from gaia_app.viz.media import video_grid
 from gaia_app.viz.world import log_world
-
-
-def load_gaia2(cfg: DictConfig) -> Gaia2Pipeline:
-    """The GAIA-2 nets of `cfg` (a weights folder, or the two training checkpoints) with its solver and guidance."""
-    g = cfg.model
-    solver = (instantiate(g.sampler), instantiate(g.guidance))
-    resize_mode = cfg.data.get("resize_mode", "crop")
-    if cfg.get("weights"):
-        given = [key for key in ("tokenizer_ckpt", "world_model_ckpt") if cfg.get(key)]
-        if given:
-            raise ValueError(f"weights={cfg.weights} replaces {', '.join(given)}; give one or the other")
-        pipeline = Gaia2Pipeline.from_weights(cfg.weights, *solver, cfg.device, resize_mode, cfg.fps)
-        size = (pipeline.encoder.height, pipeline.encoder.width)
-        if size != (cfg.data.height, cfg.data.width):
-            raise ValueError(f"weights={cfg.weights}: its video tokenizer was trained on {size} frames, but "
-                             f"data.height × data.width is {(cfg.data.height, cfg.data.width)}; set them to match")
-        return pipeline
-    for key in ("tokenizer_ckpt", "world_model_ckpt"):
-        if not cfg.get(key):
-            raise ValueError(f"model=gaia2 mode={cfg.mode} needs {key}=<checkpoint of a GAIA-2 "
-                             f"{'video tokenizer' if key == 'tokenizer_ckpt' else 'latent world model'}> "
-                             "(or weights=<folder written by model=gaia2 mode=export>)")
-    return Gaia2Pipeline.from_checkpoints(cfg.tokenizer_ckpt, cfg.world_model_ckpt, cfg.data.height, cfg.data.width,
-                                          *solver, cfg.device, resize_mode, cfg.fps)
-
-
-def latent_steps(cfg: DictConfig) -> int:
-    """Latent steps of the clip that the mode uses."""
-    g = cfg.model
-    if g.steps < 1 or not 0 < g.context_steps < g.steps:
-        raise ValueError(f"model.steps={g.steps}, model.context_steps={g.context_steps}: "
-                         "need 0 < context_steps < steps")
-    if cfg.mode == "rollout":
-        if g.chunks < 1:
-            raise ValueError(f"model.chunks={g.chunks}: expected at least 1")
-        return g.context_steps + g.chunks * (g.steps - g.context_steps)
-    return g.steps
-
-
-def source_clip(cfg: DictConfig, pipeline: Gaia2Pipeline, steps: int) -> LatentClip:
-    """The clip of `cfg.context`, encoded, with at least `steps` latent steps."""
-    c, frames = cfg.context, steps * pipeline.temporal
-    if c.source == "latents":
-        if not c.folder:
-            raise ValueError("context.source=latents needs context.folder=<a latent cache split or clip folder>")
-        folders = [Path(c.folder)] if (Path(c.folder) / "mean.npy").is_file() else find_latent_clips(c.folder)
-        if not 0 <= c.index < len(folders):
-            raise ClipError(f"context.index={c.index}: {c.folder} holds {len(folders)} latent clips")
-        clip = read_latent_clip(folders[c.index])
-    elif c.source == "synthetic":
-        if "source" not in cfg.data or "cameras" not in cfg.data.source:
-            raise ValueError("context.source=synthetic with model=gaia2 renders the rig of `data`: "
-                             "use data=synthetic_rig")
-        world = instantiate(cfg.data.source, num_clips=c.index + 1, seed=c.seed, clip_len=frames)
-        clip = pipeline.encode(world[c.index])
-    elif c.source == "folder":
-        if not c.folder:
-            raise ValueError("context.source=folder needs context.folder=<a clip folder or a root of them>")
-        clip = pipeline.encode(folder_clip(c.folder, c.index))
-    else:
-        raise ValueError(f"context.source={c.source!r}: expected synthetic, folder or latents")
-    if clip.mean.shape[1] < steps:
-        raise ClipError(f"clip '{clip.clip_id}' has {clip.mean.shape[1]} latent steps "
-                        f"({clip.mean.shape[1] * clip.temporal_downsampling} frames); mode={cfg.mode} needs {steps}")
-    return cut_steps(clip, steps)
-
-
-def commanded(cfg: DictConfig, clip: LatentClip, first_frame: int, fields: list[str]) -> LatentClip:
-    """The clip with the user's actions, prompt and metadata on frames first_frame.. (absent settings: the clip's own).
-    fields: the metadata fields of the world model."""
-    metadata = OmegaConf.to_container(cfg.model.metadata) if cfg.model.metadata else {}
-    check_metadata(metadata, fields)
-    actions = None
-    if cfg.speed is not None or cfg.curvature is not None:
-        if clip.actions is None:
-            raise ClipError(f"clip '{clip.clip_id}' has no actions; speed= / curvature= replace existing ones")
-        n = clip.timestamps.shape[0] - first_frame
-        start_speed = float(clip.actions[max(first_frame - 1, 0), 0])
-        actions = future_actions(_plain(cfg.speed), _plain(cfg.curvature), n, clip.fps, start_speed)
-    return with_labels(clip, first_frame, actions, cfg.prompt, metadata)
-
-
-def _plain(value: Any) -> Any:
-    return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
-
-
-def first_generated_frame(cfg: DictConfig, pipeline: Gaia2Pipeline) -> int:
-    """The first frame the mode generates: after the clean context steps of a rollout, else 0."""
-    return cfg.model.context_steps * pipeline.temporal if cfg.mode == "rollout" else 0
-
-
-def conditioned_clip(cfg: DictConfig, pipeline: Gaia2Pipeline) -> LatentClip:
-    """The clip of `cfg.context` with the user's commands (speed, curvature, prompt, model.metadata) and
-    model.add_agents on the generated frames."""
-    first = first_generated_frame(cfg, pipeline)
-    clip = commanded(cfg, source_clip(cfg, pipeline, latent_steps(cfg)), first, pipeline.metadata.fields)
-    return with_added_agents(clip, _plain(cfg.model.add_agents) or [], first)
-
-
-def inpaint_region(cfg: DictConfig) -> InpaintRegion:
-    """model.inpaint as an InpaintRegion."""
-    spec = cfg.model.inpaint
-    cameras = None if spec.cameras is None else tuple(str(name) for name in spec.cameras)
-    return InpaintRegion(str(spec.region), tuple(float(x) for x in spec.box), cameras)
-
-
-def sample(cfg: DictConfig, pipeline: Gaia2Pipeline, clip: LatentClip) -> Gaia2Output:
-    """cfg.num_futures samples of cfg.mode from `clip` (the pipeline call of the mode)."""
-    g = cfg.model
-    shared = {"num_futures": cfg.num_futures, "seed": int(cfg.seed), "drop": list(g.drop)}
-    if cfg.mode == "rollout":
-        return pipeline.rollout(clip, g.context_steps, g.steps, g.chunks, **shared)
-    if cfg.mode == "scratch":
-        return pipeline.scratch(clip, g.steps, **shared)
-    if cfg.mode == "inpaint":
-        return pipeline.inpaint(clip, g.steps, inpaint_region(cfg), **shared)
-    return pipeline.edit(clip, g.steps, g.edit_strength, **shared)
 
 
 def pixel_boxes(clip: LatentClip) -> list[dict[str, Any]]:
@@ -269,8 +151,8 @@ def describe(cfg: DictConfig, clip: LatentClip, pipeline: Gaia2Pipeline, first_g
             "frames": int(clip.timestamps.shape[0]), "fps": clip.fps, "first_generated_frame": first_generated,
             "metadata": {k: clip.meta.get(k) for k in fields}, "prompt": cfg.prompt,
             "actions": None if clip.actions is None else np.round(clip.actions, 4).tolist(),
-            "commanded": {"speed": _plain(cfg.speed), "curvature": _plain(cfg.curvature)},
-            "dropped": list(g.drop), "added_agents": _plain(g.add_agents), "sampler": OmegaConf.to_container(g.sampler),
+            "commanded": {"speed": plain(cfg.speed), "curvature": plain(cfg.curvature)},
+            "dropped": list(g.drop), "added_agents": plain(g.add_agents), "sampler": OmegaConf.to_container(g.sampler),
             "guidance": OmegaConf.to_container(g.guidance),
             **({"inpaint": OmegaConf.to_container(g.inpaint)} if cfg.mode == "inpaint" else {}),
             **({"edit_strength": g.edit_strength} if cfg.mode == "edit" else {})}

@@ -4,10 +4,10 @@ mode=reconstruct writes mp4s, tokens, metrics and a .rrd (a GAIA-2 video tokeniz
 per camera); mode=tokenize writes a token cache for the world model;
 mode=encode writes a GAIA-2 latent cache (multi-camera latents and their conditions) for the latent world model;
 the GAIA-1 rollout modes (video, action, text, text_action, text_only, unconditional) write futures
-(gaia_app/tasks/rollout.py); mode=controllability scores action / text adherence (tasks/controllability.py) and
-mode=evaluate fidelity and motion against real continuations (tasks/evaluate.py).
+(gaia_app/tasks/rollout.py); mode=controllability scores action / text adherence (protocols/controllability.py) and
+mode=evaluate fidelity and motion against real continuations (protocols/evaluate.py).
 model=gaia2 runs the GAIA-2 latent world model instead: modes scratch, rollout, inpaint, edit
-(tasks/gaia2_generate.py) and evaluate (agent control and action adherence, tasks/gaia2_evaluate.py).
+(tasks/gaia2_generate.py) and evaluate (agent control and action adherence, protocols/gaia2_evaluate.py).
 """
 
 from __future__ import annotations
@@ -44,10 +44,10 @@ from gaia_app.pipelines.gaia1_tokenizer import (
 )
 from gaia_app.pipelines.gaia2 import GAIA2_MODES
 from gaia_app.pipelines.gaia2_video_tokenizer import VideoTokenizerPipeline
-from gaia_app.tasks.controllability import controllability
-from gaia_app.tasks.evaluate import evaluate
+from gaia_app.protocols.controllability import controllability
+from gaia_app.protocols.evaluate import evaluate
+from gaia_app.protocols.gaia2_evaluate import gaia2_evaluate
 from gaia_app.tasks.export import export, export_gaia2
-from gaia_app.tasks.gaia2_evaluate import gaia2_evaluate
 from gaia_app.tasks.gaia2_generate import gaia2_generate
 from gaia_app.tasks.rollout import ROLLOUT_MODES, rollout
 from gaia_app.tasks.settings import GENERATE_RULES, check_settings
@@ -262,7 +262,7 @@ def shipped_tokenizer(cfg: DictConfig, component: str = "tokenizer") -> ImageTok
 
 
 def run_gaia2(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """The GAIA-2 modes: generation (tasks/gaia2_generate.py), evaluation (tasks/gaia2_evaluate.py) and export of a
+    """The GAIA-2 modes: generation (tasks/gaia2_generate.py), evaluation (protocols/gaia2_evaluate.py) and export of a
     weights folder (tasks/export.py)."""
     if cfg.mode in GAIA2_MODES:
         return gaia2_generate(cfg, run_dir)

@@ -97,7 +97,7 @@ def steps(out: Path, weights: Path, gpu: bool = False) -> list[tuple[str, list[s
                                   f"data.path={out / 'tokens_finetune/train'}", f"model.init_from={pretrained}",
                                   f"hydra.run.dir={out / 'world_model_finetune'}", "ckpt_path=last"]),
         *(gpu_steps(out, tokenizer, finetuned) if gpu else []),
-        ("cross_entropy", [py, "-m", "gaia_app.tasks.world_model_report", f"--ckpt={world_model}",
+        ("cross_entropy", [py, "-m", "gaia_app.protocols.world_model_report", f"--ckpt={world_model}",
                            f"--tokens={out / 'tokens_finetune'}", f"--out={out / 'cross_entropy'}"]),
         ("probes", [py, "benchmarks/probe_quality.py", f"--out={out / 'probes'}", *PROBES]),
         ("controllability", [py, "generate.py", "mode=controllability", *ckpts, *PROTOCOL,

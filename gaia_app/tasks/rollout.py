@@ -21,12 +21,10 @@ from typing import Any
 import numpy as np
 import rerun as rr
 import torch
-from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from gaia_app.data.transforms import to_uint8
 from gaia_app.data.video_io import write_video
-from gaia_app.diffusion.samplers import ImageVideoBlend
 from gaia_app.encoders.text import check_caption_fits
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline, Gaia1Rollout
 from gaia_app.pipelines.gaia1_inputs import (
@@ -37,10 +35,10 @@ from gaia_app.pipelines.gaia1_inputs import (
     describe_actions,
     future_frames,
 )
+from gaia_app.protocols.loading import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.viz.blueprints import rollout_blueprint
 from gaia_app.viz.media import log_token_map, to_hwc_uint8, video_grid
-from gaia_app.weights.folders import shipped_folder
 
 CONTEXT_COLOUR, FUTURE_COLOUR = (40, 200, 80), (230, 60, 40)  # top stripe: context frame / generated frame
 
@@ -60,46 +58,6 @@ def staging(run_dir: Path) -> Iterator[Path]:
             os.replace(path, target)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
-
-
-def decoder_blend(cfg: DictConfig) -> ImageVideoBlend | None:
-    """The eq. 4 image/video blend of `cfg.decoder_blend` (GAIA-1 §5.2), None when its probability is 0."""
-    blend = cfg.get("decoder_blend")
-    if blend is None or float(blend.probability) == 0:
-        return None
-    return ImageVideoBlend(float(blend.probability), float(blend.weight))
-
-
-def load_pipeline(cfg: DictConfig, video_decoder: bool | None = None) -> Gaia1Pipeline:
-    """The three checkpoints of `cfg` (decoder optional), or its shipped `weights`, with the sampler and guidance
-    of `cfg`. video_decoder: whether `weights` runs decode with the folder's video decoder (None: `cfg.video_decoder`;
-    the controllability protocol passes False, as its probes are measured on frames decoded by the tokenizer)."""
-    guided = cfg.guidance.scale > 0 or (cfg.guidance.get("text_scale") or 0) > 0
-    guidance = instantiate(cfg.guidance) if guided else None
-    if cfg.negative_prompt and guidance is None:
-        raise ValueError("negative_prompt replaces the unconditioned stream of guidance: set guidance.scale > 0")
-    if cfg.get("weights"):
-        given = [key for key in ("tokenizer_ckpt", "world_model_ckpt", "decoder_ckpt") if cfg.get(key)]
-        if given:
-            raise ValueError(f"weights={cfg.weights} replaces the checkpoints; drop {', '.join(given)}")
-        use_decoder = bool(cfg.get("video_decoder", True)) if video_decoder is None else video_decoder
-        pipeline = Gaia1Pipeline.from_weights(shipped_folder(cfg.weights), device=cfg.device, video_decoder=use_decoder,
-                                              decoder_steps=cfg.decoder_steps, decoder_blend=decoder_blend(cfg),
-                                              decoder_sampler=cfg.decoder_sampler, upsample=cfg.upsample,
-                                              sampler=instantiate(cfg.token_sampler), guidance=guidance)
-        if float(cfg.rate) != pipeline.rate:  # the weights fix the rate: a different one would be ignored
-            raise ValueError(f"rate={cfg.rate}: weights={cfg.weights} runs its world model at {pipeline.rate:g} Hz; "
-                             f"leave rate at {pipeline.rate:g}")
-        return pipeline
-    for key in ("tokenizer_ckpt", "world_model_ckpt"):
-        if not cfg.get(key):
-            raise ValueError(f"mode={cfg.mode} needs {key}=<checkpoint> (and optionally decoder_ckpt=), or weights=")
-    image_size = (cfg.data.height, cfg.data.width)
-    return Gaia1Pipeline.from_checkpoints(cfg.tokenizer_ckpt, cfg.world_model_ckpt, cfg.decoder_ckpt,
-                                          image_size=image_size, device=cfg.device, decoder_steps=cfg.decoder_steps,
-                                          decoder_blend=decoder_blend(cfg), decoder_sampler=cfg.decoder_sampler,
-                                          sampler=instantiate(cfg.token_sampler), guidance=guidance,
-                                          upsample=cfg.upsample, rate=cfg.rate)
 
 
 def mark(video: torch.Tensor, context_frames: int, upsample: int) -> np.ndarray:

@@ -28,8 +28,9 @@ from gaia_app.data.video_io import write_video
 from gaia_app.eval.controllability import probe_clips
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.gaia1_inputs import future_frames
-from gaia_app.tasks.controllability import commanded_actions, rollout_frames, world_clips
-from gaia_app.tasks.rollout import load_pipeline, mark, staging
+from gaia_app.protocols.controllability import commanded_actions, rollout_frames, world_clips
+from gaia_app.protocols.loading import load_pipeline
+from gaia_app.tasks.rollout import mark, staging
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.viz.blueprints import showcase_blueprint
 from gaia_app.viz.media import to_hwc_uint8, video_grid

@@ -4,7 +4,7 @@ The policy (policy.py) follows its lane and traffic, so its actions are predicta
 trained on policy clips alone can predict every future without reading the actions, and nothing teaches it
 what a command does. A clip that switches, at a random moment, to a random constant acceleration and curvature
 shows the effect of actions that the past does not give away. The same commands train the controllability probes
-(gaia_app/tasks/controllability.py), which must read such open-loop futures.
+(gaia_app/protocols/controllability.py), which must read such open-loop futures.
 """
 
 from __future__ import annotations

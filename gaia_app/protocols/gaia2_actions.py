@@ -1,5 +1,5 @@
 """Action adherence of the GAIA-2 latent world model, measured as GAIA-1's controllability table measures it
-(gaia_app/tasks/controllability.py; docs/latent_world_model.md, "Evaluation").
+(gaia_app/protocols/controllability.py; docs/latent_world_model.md, "Evaluation").
 
 Legend: N scenes, C commands, f = model.steps · temporal frames, t0 = context_steps · temporal.
 
@@ -20,9 +20,9 @@ Legend: N scenes, C commands, f = model.steps · temporal frames, t0 = context_s
     both with the agent boxes dropped (`model.evaluate.action_agents=dropped`, the default) or the real continuation's
     (`real`: boxes that move with the scene's own ego motion, not the command's, so they contradict it);
     reference = the real continuation under the scene's own policy, scored against the command.
-- Scores (tasks/controllability.error_row): the contrast errors of speed (accelerate vs brake) and curvature (left vs
+- Scores (protocols/controllability.error_row): the contrast errors of speed (accelerate vs brake) and curvature (left vs
   right) and the MAE, 95 % intervals over scenes; the target model ≤ floor − ½ (floor − ceiling) and the probe
-  check ceiling ≤ ½ floor and ≤ ½ reference (tasks/controllability.action_checks).
+  check ceiling ≤ ½ floor and ≤ ½ reference (protocols/controllability.action_checks).
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ from gaia_app.data.transforms import to_float
 from gaia_app.eval.controllability import contrast_pairs, probe_clips, train_probes
 from gaia_app.models.probes import InverseDynamicsProbe
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline, with_labels
-from gaia_app.tasks.controllability import (
+from gaia_app.protocols.controllability import (
     CONTRASTS,
     UNIFORM_MIX,
     action_checks,

@@ -1,6 +1,6 @@
 """Held-out cross-entropy of a GAIA-1 world model per conditioning mode, against the token baselines.
 
-    python -m gaia_app.tasks.world_model_report --ckpt <world model last.ckpt> --tokens <cache root> --out <dir>
+    python -m gaia_app.protocols.world_model_report --ckpt <world model last.ckpt> --tokens <cache root> --out <dir>
 
 The cache root holds train/ and val/ (generate.py mode=tokenize); val/ is the held-out world. Every val segment
 is cut into non-overlapping windows of the model's T steps, and frames 2..T are scored (GAIA-1 §2.3, eq. 1):

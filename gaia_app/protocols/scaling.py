@@ -4,7 +4,7 @@ Each job of the Hydra sweep trains one world-model size; `ScalingPointCallback` 
 parameters N, training tokens, compute C = 6·N·tokens, final validation cross-entropy) to `scaling_point.json`.
 When the sweep ends, `ScalingLawCallback` (a Hydra callback) fits f(C) = c + (C / a)^b to every point but the
 largest-compute ones, predicts those, and writes `scaling_law.json`, `scaling_law.png` (Fig. 8a, 8b) and
-`scaling_law.rrd` into the sweep dir. Refit a finished sweep with `python -m gaia_app.tasks.scaling <sweep dir>`.
+`scaling_law.rrd` into the sweep dir. Refit a finished sweep with `python -m gaia_app.protocols.scaling <sweep dir>`.
 """
 
 from __future__ import annotations
@@ -154,7 +154,7 @@ class ScalingLawCallback(HydraCallback):
         try:
             result = fit_sweep(sweep_dir, self.holdout, self.tolerance)
         except Exception:  # Hydra turns callback errors into warnings: say it loudly, with the refit command
-            log.exception("scaling-law fit of %s failed; refit with `python -m gaia_app.tasks.scaling %s`",
+            log.exception("scaling-law fit of %s failed; refit with `python -m gaia_app.protocols.scaling %s`",
                           sweep_dir, sweep_dir)
             raise
         log.info("%s", summary(result))

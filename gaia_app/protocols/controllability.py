@@ -66,7 +66,7 @@ from gaia_app.eval.intervals import mean_interval, share_interval
 from gaia_app.models.probes import ATTRIBUTES
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.gaia1_inputs import future_actions, future_frames
-from gaia_app.tasks.rollout import load_pipeline
+from gaia_app.protocols.loading import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.weights.folders import shipped_folder
 

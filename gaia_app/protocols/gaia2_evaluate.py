@@ -22,9 +22,9 @@ Each IoU carries a 95 % interval (scenes resampled), and the guided rows their p
 same scenes and noise.
 Action adherence (the front camera or the whole rig, `model.evaluate.probe_cameras`): GAIA-1's controllability
 protocol, contrast errors against a re-simulated ceiling, a floor with actions dropped and the real continuation
-(gaia_app/tasks/gaia2_actions.py).
+(gaia_app/protocols/gaia2_actions.py).
 Fidelity (every camera; the metrics of `evaluate.metrics`, shared with GAIA-1's mode=evaluate and scored by the same
-code, tasks/evaluate.score): the context steps continued under the scene's own conditions, scored from the first
+code, protocols/evaluate.score): the context steps continued under the scene's own conditions, scored from the first
 generated frame against the real continuation, next to the tokenized real clip (ceiling) and the last context frame
 held (floor).
 Cross-view consistency (every overlapping camera pair, every frame of model.steps latent steps generated from
@@ -59,9 +59,9 @@ from gaia_app.models.gaia2.conditioning import project_boxes
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline
 from gaia_app.pipelines.gaia2_edits import cut_steps
 from gaia_app.pipelines.gaia2_world_model import Guidance
-from gaia_app.tasks import gaia2_actions
-from gaia_app.tasks.evaluate import check_metrics, feature_metrics, score
-from gaia_app.tasks.gaia2_generate import load_gaia2
+from gaia_app.protocols import gaia2_actions
+from gaia_app.protocols.evaluate import check_metrics, feature_metrics, score
+from gaia_app.protocols.loading import load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
 
 

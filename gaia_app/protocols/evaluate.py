@@ -36,8 +36,8 @@ from gaia_app.eval.fvmd import FVMD
 from gaia_app.eval.metrics import psnr, ssim
 from gaia_app.models.probes import AgentSegmentationProbe
 from gaia_app.pipelines.gaia1_inputs import future_frames
-from gaia_app.tasks.controllability import rollout_frames, world_samples
-from gaia_app.tasks.rollout import load_pipeline
+from gaia_app.protocols.controllability import rollout_frames, world_samples
+from gaia_app.protocols.loading import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 
 METRICS = ("psnr", "ssim", "lpips", "fvmd", "fid", "fdd", "agent_iou")
