@@ -20,8 +20,8 @@ Legend: N scenes, C commands, f = model.steps · temporal frames, t0 = context_s
     both with the agent boxes dropped (`model.evaluate.action_agents=dropped`, the default) or the real continuation's
     (`real`: boxes that move with the scene's own ego motion, not the command's, so they contradict it);
     reference = the real continuation under the scene's own policy, scored against the command.
-- Scores (protocols/controllability.error_row): the contrast errors of speed (accelerate vs brake) and curvature (left vs
-  right) and the MAE, 95 % intervals over scenes; the target model ≤ floor − ½ (floor − ceiling) and the probe
+- Scores (protocols/controllability.error_row): the contrast errors of speed (accelerate vs brake) and curvature
+  (left vs right) and the MAE, 95 % intervals over scenes; the target model ≤ floor − ½ (floor − ceiling) and the probe
   check ceiling ≤ ½ floor and ≤ ½ reference (protocols/controllability.action_checks).
 """
 
