@@ -37,11 +37,11 @@ CAPTIONS = ["It is night.", "It is raining.", "The weather is clear."]
 
 @pytest.fixture(scope="module")
 def pretrained(tmp_path_factory) -> dict[str, Path]:
-    """Random frozen networks of the paper layouts, shrunk: VGG16 at base width 8, DINO ViT-S/16 and DINOv2
+    """Random frozen networks of the paper layouts, shrunk: VGG16 at base width 4, DINO ViT-S/16 and DINOv2
     ViT-S/14 with one block (embed 384 = the tokenizers' distill_dim), and tiny T5 / CLIP directories."""
     root = tmp_path_factory.mktemp("pretrained")
     torch.manual_seed(0)
-    torch.save(VGG16Features(base_width=8).state_dict(), root / "vgg16.pth")
+    torch.save(VGG16Features(base_width=4).state_dict(), root / "vgg16.pth")
     torch.save(VisionTransformer(embed_dim=384, depth=1, num_heads=6).state_dict(), root / "dino_vits16.pth")
     torch.save(VisionTransformer(embed_dim=384, depth=1, num_heads=6, image_size=518, patch_size=14, layer_scale=True,
                                  mask_token=True).state_dict(), root / "dinov2_vits14.pth")
@@ -61,7 +61,7 @@ def clips(tmp_path_factory) -> Path:
 
 
 def frozen(pretrained: dict[str, Path], dino: str) -> list[str]:
-    return [f"model.perceptual.checkpoint={pretrained['root'] / 'vgg16.pth'}", "+model.perceptual.base_width=8",
+    return [f"model.perceptual.checkpoint={pretrained['root'] / 'vgg16.pth'}", "+model.perceptual.base_width=4",
             f"model.dino.checkpoint={pretrained['root'] / (dino + '.pth')}", "+model.dino.depth=1"]
 
 
@@ -112,11 +112,11 @@ def test_gaia1_video_decoder_paper_runs_one_step(gaia1_tokenizer: Path, clips: P
 
 def test_gaia2_video_tokenizer_paper_runs_one_step(pretrained, clips: Path, tmp_path: Path) -> None:
     """24 frames at 448×960 → 3 latent steps of 64 channels on a 14×30 grid (32× spatial, 8× temporal)."""
-    run("gaia2/video_tokenizer_paper", [f"data.source.root={clips}", "model.net.conv_channels=8",
+    run("gaia2/video_tokenizer_paper", [f"data.source.root={clips}", "model.net.conv_channels=4",
                                         "model.net.encoder_dim=32", "model.net.encoder_depth=1",
                                         "model.net.encoder_heads=2", "model.net.decoder_dim=32",
                                         "model.net.decoder_depth=1", "model.net.decoder_heads=2",
-                                        "model.net.decoder_conv_channels=8", *frozen(pretrained, "dinov2_vits14")],
+                                        "model.net.decoder_conv_channels=4", *frozen(pretrained, "dinov2_vits14")],
         tmp_path)
 
 

@@ -17,7 +17,7 @@ from tests.conftest import compose_config
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-TINY_NET = ["model.net.channels=8", "model.net.channel_mults=[1,2]", "model.net.attention_levels=[1]",
+TINY_NET = ["model.net.channels=8", "model.net.channel_mults=[1,2,2]", "model.net.attention_levels=[2]",
             "model.net.token_dim=8", "model.net.heads=2", "model.net.vocab_size=512",
             "model.net.token_grid=[16,28]", "model.net.image_size=[64,112]"]
 
