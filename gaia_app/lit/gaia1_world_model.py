@@ -19,8 +19,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from gaia_app.lit.base import GaiaModule
-from gaia_app.lit.checkpoint import load_net_weights
+from gaia_app.lit.captioned import CaptionedModule
 from gaia_app.models.gaia1.world_model import DEFAULT_DROP, Conditions, WorldModel, next_token_loss
 
 # mode of DEFAULT_DROP → (streams it drops, streams it needs in the batch)
@@ -28,7 +27,7 @@ MODE_STREAMS = {"unconditional": ({"text", "actions"}, set()), "actions": ({"tex
                 "text": ({"actions"}, {"text"}), "both": (set(), {"text", "actions"})}
 
 
-class WorldModelModule(GaiaModule):
+class WorldModelModule(CaptionedModule):
     """GAIA-1 world model with its conditioning dropout and next-token objective.
 
     Args:
@@ -42,36 +41,16 @@ class WorldModelModule(GaiaModule):
     component = "world_model"
     net_prefixes = {"net": "net.", "text_encoder": "text_encoder."}
 
+    init_from_what = "a GAIA-1 world-model training checkpoint of the same preset"
+
     def __init__(self, net: Callable[[], WorldModel], optim: Callable, sched: Callable | None = None,
                  text_encoder: Callable[[], nn.Module] | None = None, init_from: str | None = None):
-        super().__init__(net, optim, sched)
-        self.text_encoder_factory = text_encoder if callable(text_encoder) else None
-        self.text_encoder: nn.Module | None = None
-        self.init_from = init_from
+        super().__init__(net, optim, sched, text_encoder, init_from)
 
     @property
     def world_model(self) -> WorldModel:
         self.configure_model()
         return self.net  # type: ignore[return-value]
-
-    def configure_model(self) -> None:
-        """Build the world model and the text encoder once (idempotent)."""
-        super().configure_model()
-        if self.text_encoder is None and self.text_encoder_factory is not None:
-            self.text_encoder = self.text_encoder_factory()
-
-    def on_fit_start(self) -> None:
-        if self.init_from and self.trainer.ckpt_path is None:
-            self.load_init_weights()
-
-    def load_init_weights(self) -> None:
-        """Copy the world model (and text encoder) weights of `init_from` in place (optimiser state stays bound)."""
-        what = "a GAIA-1 world-model training checkpoint of the same preset"
-        load_net_weights(self.world_model, self.init_from, what, component="world_model")
-        # pretrained encoders (MiniLM, T5, CLIP) keep their frozen weights outside the module, read from their own
-        # files; only a learned encoder has weights in the checkpoint
-        if self.text_encoder is not None and any(p.numel() for p in self.text_encoder.parameters()):
-            load_net_weights(self.text_encoder, self.init_from, what, prefix="text_encoder.", component="world_model")
 
     def encode_text(self, batch: dict[str, Any]) -> torch.Tensor | None:
         """(b, t, m, e) text embeddings of the batch's captions; None without captions or without an encoder."""

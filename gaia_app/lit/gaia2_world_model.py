@@ -19,14 +19,13 @@ import torch
 from torch import nn
 
 from gaia_app.diffusion.flow_matching import sample_tau, velocity_target
-from gaia_app.lit.base import GaiaModule
-from gaia_app.lit.checkpoint import load_net_weights
-from gaia_app.models.gaia2.conditioning import WorldConditions, batch_conditions, caption_vector  # noqa: F401
+from gaia_app.lit.captioned import CaptionedModule
+from gaia_app.models.gaia2.conditioning import WorldConditions, batch_conditions, batch_text_vector
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
 from gaia_app.nn.distributions import DiagonalGaussian
 
 
-class LatentWorldModelModule(GaiaModule):
+class LatentWorldModelModule(CaptionedModule):
     """Flow-matching objective of the latent world model.
 
     Args:
@@ -45,40 +44,22 @@ class LatentWorldModelModule(GaiaModule):
 
     component = "latent_world_model"
     net_prefixes = {"net": "net.", "text_encoder": "text_encoder."}
+    init_from_what = "a latent world model checkpoint of the same preset (and model/text_encoder)"
 
     def __init__(self, net: Callable[[], LatentWorldModel], optim: Callable, sched: Callable | None = None,
                  text_encoder: Callable[[], nn.Module] | None = None, tau_distribution: str = "logit_normal",
                  tau_mean: float = 0.0, tau_std: float = 1.0, context_prob: float = 0.5, sample_posterior: bool = True,
                  latent_scale: float = 1.0, val_taus: tuple[float, ...] = (0.25, 0.5, 0.75),
                  init_from: str | None = None):
-        super().__init__(net, optim, sched)
-        self.text_encoder_factory = text_encoder
-        self.text_encoder: nn.Module | None = None
+        super().__init__(net, optim, sched, text_encoder, init_from)
         self.tau_distribution, self.tau_mean, self.tau_std = tau_distribution, tau_mean, tau_std
         self.context_prob, self.sample_posterior, self.latent_scale = context_prob, sample_posterior, latent_scale
         self.val_taus = tuple(val_taus)
-        self.init_from = init_from
 
     @property
     def model(self) -> LatentWorldModel:
         self.configure_model()
         return self.net  # type: ignore[return-value]
-
-    def configure_model(self) -> None:
-        super().configure_model()
-        if self.text_encoder is None and self.text_encoder_factory is not None:
-            self.text_encoder = self.text_encoder_factory()
-
-    def on_fit_start(self) -> None:
-        # a resumed run (ckpt_path) holds its own weights: init_from only starts a fresh one
-        if self.init_from and self.trainer.ckpt_path is None:
-            load_net_weights(self.model, self.init_from, "a latent world model checkpoint of the same preset",
-                             component="latent_world_model")
-            if self.text_encoder is not None and any(p.requires_grad for p in self.text_encoder.parameters()):
-                # a trained text encoder (model/text_encoder=learned) is part of what the net learned to read
-                load_net_weights(self.text_encoder, self.init_from, "a latent world model checkpoint trained with "
-                                 "the same model/text_encoder", prefix="text_encoder.",
-                                 component="latent_world_model")
 
     def latents(self, batch: dict[str, Any], sample: bool) -> torch.Tensor:
         """(b, v, t, C, h, w) scaled latents: a posterior sample or the mean."""
@@ -87,9 +68,7 @@ class LatentWorldModelModule(GaiaModule):
 
     def text_vector(self, batch: dict[str, Any]) -> torch.Tensor | None:
         """(b, e) mean of the caption's token features, or None without captions or text encoder."""
-        if self.text_encoder is None or "text" not in batch:
-            return None
-        return caption_vector(self.text_encoder, batch["text"]).to(batch["mean"].dtype)
+        return batch_text_vector(self.text_encoder, batch)
 
     def task_taus(self, b: int, t: int, tau: torch.Tensor, context: torch.Tensor | None = None) -> torch.Tensor:
         """(b, t) flow times: τ per sample on its generated steps, 1 on its `context` (b,) clean first steps."""

@@ -25,7 +25,7 @@ from gaia_app.data.latent_cache import LatentClip
 from gaia_app.data.latent_windows import collate_latent_windows, latent_window
 from gaia_app.data.metadata import BUCKETS, VOCABULARIES, MetadataEncoder
 from gaia_app.diffusion.flow_matching import FlowSampler
-from gaia_app.models.gaia2.conditioning import WorldConditions, batch_conditions, caption_vector
+from gaia_app.models.gaia2.conditioning import WorldConditions, batch_conditions, batch_text_vector
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
 from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer
 from gaia_app.pipelines.gaia2_edits import InpaintRegion, cut_steps
@@ -158,9 +158,7 @@ class Gaia2Pipeline:
 
     def text_vector(self, batch: dict[str, Any]) -> torch.Tensor | None:
         """(b, e) pooled caption features of a latent-window batch, or None without captions or text encoder."""
-        if self.text_encoder is None or "text" not in batch:
-            return None
-        return caption_vector(self.text_encoder, batch["text"]).to(batch["mean"].dtype)
+        return batch_text_vector(self.text_encoder, batch)
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor) -> torch.Tensor:

@@ -147,6 +147,15 @@ def build(config: Any, where: str = "net config") -> nn.Module:
     return made() if callable(made) and not isinstance(made, nn.Module) else made
 
 
+def load_exactly(net: nn.Module, tensors: Mapping[str, torch.Tensor], where: str, hint: str = "") -> None:
+    """Fill `net` with `tensors`, every parameter and buffer and nothing else (strict); a mismatch is a ValueError
+    `<where> (<what does not fit>)<hint>`. Both loaders (weights folders, training checkpoints) fill nets this way."""
+    try:
+        net.load_state_dict(dict(tensors), strict=True)
+    except RuntimeError as error:
+        raise ValueError(f"{where} ({error}){hint}") from None
+
+
 def load_nets(folder: str | Path, component: str,
               device: str | torch.device = "cpu") -> tuple[dict[str, nn.Module], dict]:
     """({net key: float32 module in eval mode}, info) of a component written by `export_component`, from a folder
@@ -158,10 +167,7 @@ def load_nets(folder: str | Path, component: str,
     for key, net_config in config["nets"].items():
         net = build(net_config, f"{config_path}: nets.{key}")
         part = {name[len(key) + 1:]: value for name, value in state.items() if name.startswith(f"{key}.")}
-        try:
-            net.load_state_dict(part, strict=True)
-        except RuntimeError as error:
-            raise ValueError(f"{weights}: the tensors of '{key}' do not fit the net of {config_path.name} "
-                             f"({error}); {restore_hint(weights)}") from error
+        load_exactly(net, part, f"{weights}: the tensors of '{key}' do not fit the net of {config_path.name}",
+                     f"; {restore_hint(weights)}")
         nets[key] = net.float().to(device).eval()
     return nets, dict(config.get("info") or {})

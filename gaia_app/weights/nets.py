@@ -21,7 +21,7 @@ from torch import nn
 
 from gaia_app.utils.untrusted import check_finite
 from gaia_app.weights.checkpoints import read_checkpoint
-from gaia_app.weights.folders import build
+from gaia_app.weights.folders import build, load_exactly
 from gaia_app.weights.targets import check_targets
 
 # what a training checkpoint holds for inference, written by the LightningModule at training time
@@ -107,10 +107,7 @@ def checkpoint_nets(path: str | Path, component: str | tuple[str, ...], role: st
         net = build(config[key], f"{where}.{key}")  # nets and encoders of gaia_app only
         part = {name[len(prefix):]: value for name, value in state.items() if name.startswith(prefix)}
         check_finite(part, f"{role}={path}: state_dict under '{prefix}'")
-        try:
-            net.load_state_dict(part, strict=True)
-        except RuntimeError as error:
-            raise ValueError(f"{role}={path}: the tensors under '{prefix}' do not fit the stored model.{key} "
-                             f"config ({error})") from None
+        load_exactly(net, part, f"{role}={path}: the tensors under '{prefix}' do not fit the stored model.{key} "
+                                "config")
         nets[key] = net.to(device).eval()
     return CheckpointNets(nets, config, found)

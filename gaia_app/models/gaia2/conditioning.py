@@ -341,3 +341,12 @@ def caption_vector(text_encoder: Callable[[list[list[str]]], torch.Tensor], capt
     if pooled is not None:
         return pooled(list(captions))
     return text_encoder([[caption] for caption in captions])[:, 0].mean(dim=1)
+
+
+def batch_text_vector(text_encoder: Callable[[list[list[str]]], torch.Tensor] | None,
+                      batch: dict[str, Any]) -> torch.Tensor | None:
+    """(b, e) `caption_vector` of a latent-window batch's captions in the dtype of its latents, or None without
+    captions or without a text encoder (training and inference share it, so both read captions the same way)."""
+    if text_encoder is None or "text" not in batch:
+        return None
+    return caption_vector(text_encoder, batch["text"]).to(batch["mean"].dtype)
