@@ -26,8 +26,8 @@ from gaia_app.diffusion.guidance import ClassifierFreeGuidance
 from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule
 from gaia_app.diffusion.samplers import DDIMSampler, ImageVideoBlend, OneStepMeanSampler
 from gaia_app.eval.token_perplexity import fit_window, token_log_perplexity
-from gaia_app.models.gaia1.tokenizer import ImageTokenizer
 from gaia_app.models.gaia1.world_model import STREAMS, Conditions, WorldModel
+from gaia_app.models.tokenizer_protocol import DiscreteTokenizer
 from gaia_app.pipelines.gaia1_video_decoder import VideoDecodingPipeline
 from gaia_app.pipelines.gaia1_world_model import WorldModelRolloutPipeline
 
@@ -81,7 +81,7 @@ class Gaia1Pipeline:
         image_size: (H, W) of the tokenizer's images. rate: the world model's frame rate in Hz.
     """
 
-    def __init__(self, tokenizer: ImageTokenizer, world_model: WorldModel, image_size: tuple[int, int],
+    def __init__(self, tokenizer: DiscreteTokenizer, world_model: WorldModel, image_size: tuple[int, int],
                  text_encoder: Callable | None = None, sampler: AutoregressiveSampler | None = None,
                  guidance: ClassifierFreeGuidance | None = None, decoder: VideoDecodingPipeline | None = None,
                  upsample: int = 2, rate: float = 6.25):
@@ -302,7 +302,7 @@ def decoder_sampling(config: dict, steps: int | None,
     return schedule, sampler, int(config.get("frames", 7)), int(config.get("context_frames", 2))
 
 
-def _renderer(tokenizer: ImageTokenizer) -> Callable[[torch.Tensor], torch.Tensor]:
+def _renderer(tokenizer: DiscreteTokenizer) -> Callable[[torch.Tensor], torch.Tensor]:
     """tokens (b, t, h, w) → the tokenizer's frame-by-frame decoding (b, t, 3, H, W) in [-1, 1]."""
 
     @torch.no_grad()

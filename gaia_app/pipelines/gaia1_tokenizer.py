@@ -14,7 +14,7 @@ from gaia_app.data.names import check_camera_name
 from gaia_app.data.token_cache import TokenSegment
 from gaia_app.data.transforms import resample_clip, to_float
 from gaia_app.eval.metrics import psnr, ssim
-from gaia_app.models.gaia1.tokenizer import ImageTokenizer
+from gaia_app.models.tokenizer_protocol import DiscreteTokenizer
 
 
 @dataclass
@@ -32,11 +32,11 @@ class TokenizerReconstructionPipeline:
     """Encode every frame of a multi-camera video to tokens and decode it back.
 
     Args:
-        tokenizer: a trained ImageTokenizer (put in eval mode by the caller).
+        tokenizer: a trained tokenizer (DiscreteTokenizer; put in eval mode by the caller).
         batch_size: frames per forward pass.
     """
 
-    def __init__(self, tokenizer: ImageTokenizer, batch_size: int = 16):
+    def __init__(self, tokenizer: DiscreteTokenizer, batch_size: int = 16):
         self.tokenizer, self.batch_size = tokenizer, batch_size
 
     @torch.inference_mode()
@@ -82,13 +82,13 @@ class TokenCachePipeline:
     """Encode every frame of every camera of a clip once, for world-model training on tokens (GAIA-1 §2.2–2.3).
 
     Args:
-        tokenizer: a trained ImageTokenizer (put in eval mode by the caller).
+        tokenizer: a trained tokenizer (DiscreteTokenizer; put in eval mode by the caller).
         height, width, resize_mode: the tokenizer's input size; frames are resized (and cropped) to it.
         fps: resample the clip to this rate by timestamps first (None keeps the source rate).
         batch_size: frames per forward pass.
     """
 
-    def __init__(self, tokenizer: ImageTokenizer, height: int, width: int, resize_mode: str = "crop",
+    def __init__(self, tokenizer: DiscreteTokenizer, height: int, width: int, resize_mode: str = "crop",
                  fps: float | None = None, batch_size: int = 16):
         self.tokenizer, self.height, self.width, self.resize_mode = tokenizer, height, width, resize_mode
         self.fps, self.batch_size = fps, batch_size

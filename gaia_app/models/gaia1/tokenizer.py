@@ -105,6 +105,10 @@ class ImageTokenizer(nn.Module):
         """tokens (b, h, w) int64 → images (b, 3, H, W), unclamped."""
         return self.decoder(self.embed(tokens))
 
+    def code_vectors(self) -> torch.Tensor:
+        """(k, d) the code vector of every token id (models/tokenizer_protocol.py)."""
+        return self.quantizer.codebook.weight.detach()
+
     def distill(self, quantized: torch.Tensor) -> torch.Tensor:
         """Quantised features (b, d, h, w) → (b, f, h, w) in the DINO teacher's feature space (GAIA-1 §2.2)."""
         if self.distill_head is None:
