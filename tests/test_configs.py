@@ -117,6 +117,38 @@ def test_generate_families_compose(family: str, tmp_path: Path) -> None:
         assert not guidance.active and list(guidance.conditions) == ["agents"]
 
 
+@pytest.mark.parametrize("mode", options("mode"))
+def test_every_generation_mode_has_one_registry_entry_and_its_settings_beside_it(mode: str, tmp_path: Path) -> None:
+    """conf/mode/<name>.yaml and the registry (gaia_app/tasks/modes.py) name the same modes; selecting a mode sets
+    `mode` and brings its own settings, and only its own (showcase / controllability / evaluate sections)."""
+    from gaia_app.tasks.modes import MODES
+
+    family = "gaia2" if mode in ("scratch", "rollout", "inpaint", "edit") else "gaia1"
+    cfg = resolve_job(compose_config("generate", [f"model={family}", f"mode={mode}"], tmp_path))
+    assert cfg["mode"] == mode and mode in MODES and family in MODES[mode].runs
+    own = {"showcase": "showcase", "evaluate": "evaluate", "reconstruct": "num_clips", "export": "export_dtype"}
+    for name, key in own.items():
+        assert (key in cfg) == (name == mode), (mode, key)
+    assert ("probe_clips" in cfg["controllability"]) == (mode == "controllability")
+
+
+def test_the_registry_lists_exactly_the_mode_configs() -> None:
+    from gaia_app.tasks.modes import MODES
+
+    assert sorted(MODES) == options("mode")
+
+
+def test_an_unknown_mode_names_the_modes_there_are(tmp_path: Path) -> None:
+    from hydra.errors import MissingConfigException
+
+    from gaia_app.tasks.modes import mode_run
+
+    with pytest.raises(MissingConfigException, match=r"(?s)mode/fly.*showcase"):
+        compose_config("generate", ["mode=fly"], tmp_path)
+    with pytest.raises(ValueError, match=r"model=gaia2 mode=video: expected one of \['evaluate', 'export', 'scratch'"):
+        mode_run("gaia2", "video")
+
+
 def test_experiment_values_win_over_root_defaults(tmp_path: Path) -> None:
     cfg = compose_config("train", ["experiment=gaia1/tokenizer_tiny"], tmp_path)
     assert cfg.run_name == "gaia1_tokenizer_tiny" and cfg.trainer.max_steps == 1200

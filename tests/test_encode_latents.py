@@ -16,7 +16,8 @@ import gaia_app.utils.run_dir as run_dir_module
 from gaia_app.data.latent_cache import find_latent_clips, read_latent_clip
 from gaia_app.data.transforms import to_float
 from gaia_app.lit.checkpoint import load_module
-from gaia_app.tasks.generate import generate, read_in_order
+from gaia_app.tasks.component_modes import read_in_order
+from gaia_app.tasks.generate import generate
 from gaia_app.tasks.train import train
 from tests.conftest import compose_config
 

@@ -149,7 +149,6 @@ def test_long_rollouts_slide_past_the_context_window(checkpoints, tmp_path: Path
 
 
 @pytest.mark.parametrize(("overrides", "error", "match"), [
-    (["mode=fly"], ValueError, "mode=fly: expected one of"),
     (["mode=action"], ValueError, "needs speed= and/or curvature="),
     (["mode=action", "speed=[1,2]"], ValueError, "2 values for 7 future steps"),
     (["mode=action", "curvature=hard_left"], ValueError, "curvature='hard_left': expected one of"),

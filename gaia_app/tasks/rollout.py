@@ -28,7 +28,6 @@ from gaia_app.data.video_io import write_video
 from gaia_app.encoders.text import check_caption_fits
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline, Gaia1Rollout
 from gaia_app.pipelines.gaia1_inputs import (
-    MODES,
     ContextClip,
     build_conditioning,
     context_for,
@@ -166,7 +165,7 @@ def rollout(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
 def _codebook(pipeline: Gaia1Pipeline) -> torch.Tensor:
     """(K, e) code vectors, for the PCA colouring of token maps."""
-    return pipeline.tokenizer.quantizer.codebook.weight.detach().cpu()
+    return pipeline.tokenizer.code_vectors().cpu()
 
 
 def _guidance_scales(pipeline: Gaia1Pipeline, frames: int, prompted: bool) -> torch.Tensor | None:
@@ -183,4 +182,3 @@ def _guidance(pipeline: Gaia1Pipeline, frames: int, prompted: bool) -> dict[str,
             "per_frame_mean_scale": [round(float(s), 4) for s in scales.mean(1)]}
 
 
-ROLLOUT_MODES = tuple(MODES)
