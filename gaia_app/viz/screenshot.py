@@ -50,8 +50,7 @@ def screenshot_recording(rrd: str | Path, png: str | Path, frame: int | None = N
         try:
             opened = viewer.open(str(rrd.resolve()))
         except ConnectionError as err:  # spawned, then died: no usable Vulkan driver on this machine
-            raise ViewerUnavailable(f"the headless Rerun viewer stopped answering ({err}); without a GPU it needs "
-                                    "Mesa's software Vulkan driver: apt-get install mesa-vulkan-drivers") from err
+            raise _stopped_answering(err) from err
         if not opened.store_ids:
             raise RuntimeError(f"the Rerun viewer opened no recording from {rrd}")
         timeline = _frame_timeline(viewer, rrd)
@@ -70,11 +69,20 @@ def capture_live(viewer, process, png: str | Path, max_size: int = 1280, settle_
 
 
 def _capture(viewer, png: str | Path, max_size: int, settle_s: float) -> Path:
-    time.sleep(settle_s)
-    viewer.take_screenshot(max_size=max_size)  # the first paint fetches the chunks in view
-    time.sleep(settle_s)
-    atomic_write_bytes(png, viewer.take_screenshot(max_size=max_size))
+    try:
+        time.sleep(settle_s)
+        viewer.take_screenshot(max_size=max_size)  # the first paint fetches the chunks in view
+        time.sleep(settle_s)
+        shot = viewer.take_screenshot(max_size=max_size)
+    except ConnectionError as err:  # spawned, then died while painting: no usable Vulkan driver here
+        raise _stopped_answering(err) from err
+    atomic_write_bytes(png, shot)
     return Path(png)
+
+
+def _stopped_answering(err: Exception) -> ViewerUnavailable:
+    return ViewerUnavailable(f"the headless Rerun viewer stopped answering ({err}); without a GPU it needs "
+                             "Mesa's software Vulkan driver: apt-get install mesa-vulkan-drivers")
 
 
 def _frame_timeline(viewer, rrd: Path):
