@@ -51,16 +51,34 @@ TINY_TOKENIZER = ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "data=synth
 
 
 @pytest.fixture(scope="session")
-def genuine(tmp_path_factory) -> Path:
-    """last.ckpt of a 2-step tiny tokenizer run: a checkpoint exactly as train.py writes it (once per worker)."""
-    from gaia_app.tasks.train import train
+def tiny_tokenizer_ckpt(tmp_path_factory) -> Path:
+    """last.ckpt of a 2-step tiny GAIA-1 tokenizer run, exactly as train.py writes it (once per test run)."""
+    from tests.tiny_checkpoints import build_tokenizer, built_once, run_base, tokenizer_checkpoint
 
-    run_dir = tmp_path_factory.mktemp("genuine")
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    train(compose_config("train", [*TINY_TOKENIZER, "trainer.max_steps=2"], run_dir))
-    torch.set_num_threads(threads)
-    return run_dir / "checkpoints" / "last.ckpt"
+    return tokenizer_checkpoint(built_once(run_base(tmp_path_factory), "tiny-tokenizer", build_tokenizer))
+
+
+@pytest.fixture(scope="session")
+def genuine(tiny_tokenizer_ckpt: Path) -> Path:
+    """A genuine training checkpoint, the starting point of the tampered ones (never edited in place)."""
+    return tiny_tokenizer_ckpt
+
+
+@pytest.fixture(scope="session")
+def gaia1_tiny(tmp_path_factory) -> dict[str, Path]:
+    """Tokenizer, world-model and video-decoder checkpoints of a tiny GAIA-1 chain at 32×48 (once per test run)."""
+    from tests.tiny_checkpoints import build_gaia1, built_once, gaia1_checkpoints, run_base
+
+    return gaia1_checkpoints(built_once(run_base(tmp_path_factory), "tiny-gaia1", build_gaia1))
+
+
+@pytest.fixture(scope="session")
+def gaia2_tiny(tmp_path_factory) -> dict[str, Path]:
+    """Video-tokenizer and latent-world-model checkpoints and the latent cache of a tiny GAIA-2 chain (once per
+    test run)."""
+    from tests.tiny_checkpoints import build_gaia2, built_once, gaia2_checkpoints, run_base
+
+    return gaia2_checkpoints(built_once(run_base(tmp_path_factory), "tiny-gaia2", build_gaia2))
 
 
 class Payload:

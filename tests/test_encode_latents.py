@@ -18,19 +18,16 @@ from gaia_app.data.transforms import to_float
 from gaia_app.lit.checkpoint import load_module
 from gaia_app.tasks.component_modes import read_in_order
 from gaia_app.tasks.generate import generate
-from gaia_app.tasks.train import train
 from tests.conftest import compose_config
 
-TINY = ["experiment=gaia2/video_tokenizer_tiny", "trainer=tiny", "data=synthetic_rig_tiny", "extras.print_config=false"]
 # 8 train + 2 val 3-camera clips of 10 frames at 12.5 Hz: 2 whole latent steps of τ = 4 each
 ENCODE = ["mode=encode", "data=synthetic_rig_tiny", "extras.print_config=false"]
 
 
 @pytest.fixture(scope="module")
-def ckpt(tmp_path_factory) -> Path:
-    run_dir = tmp_path_factory.mktemp("g2tok_run")
-    train(compose_config("train", [*TINY, "trainer.max_steps=2", "logger=csv"], run_dir))
-    return run_dir / "checkpoints" / "last.ckpt"
+def ckpt(gaia2_tiny: dict[str, Path]) -> Path:
+    """The 2-step tiny video tokenizer of the GAIA-2 chain (data=synthetic_rig_tiny), trained once per run."""
+    return gaia2_tiny["tokenizer"]
 
 
 def run_encode(ckpt: Path, run_dir: Path, out_dir: Path, *extra: str) -> dict:
@@ -161,13 +158,10 @@ def test_interrupted_write_leaves_an_unfinished_clip_that_is_redone(ckpt: Path, 
     read_latent_clip(clip_dir)
 
 
-def test_encode_needs_a_gaia2_tokenizer_checkpoint(tmp_path: Path) -> None:
-    tok_dir = tmp_path / "g1tok"
-    train(compose_config("train", ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "data=synthetic_frames_tiny",
-                                   "extras.print_config=false", "trainer.max_steps=1", "logger=csv"], tok_dir))
+def test_encode_needs_a_gaia2_tokenizer_checkpoint(tiny_tokenizer_ckpt: Path, tmp_path: Path) -> None:
     with pytest.raises(TypeError, match=r"mode=encode: ckpt=.* holds a tokenizer \(ImageTokenizerModule\) "
                                         "checkpoint, expected a video_tokenizer checkpoint"):
-        run_encode(tok_dir / "checkpoints" / "last.ckpt", tmp_path / "g", tmp_path / "latents")
+        run_encode(tiny_tokenizer_ckpt, tmp_path / "g", tmp_path / "latents")
 
 
 def test_pipeline_reconstructs_whole_latent_steps_of_a_clip() -> None:

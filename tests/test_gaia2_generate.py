@@ -30,20 +30,9 @@ RIG = ["data=synthetic_rig_tiny", "extras.print_config=false"]
 
 
 @pytest.fixture(scope="module")
-def checkpoints(tmp_path_factory) -> dict[str, Path]:
-    """A tiny video tokenizer (2 steps), its latent cache of 16-frame clips (4 latent steps) and a tiny latent world
-    model (2 steps) on it."""
-    root = tmp_path_factory.mktemp("gaia2")
-    train(compose_config("train", ["experiment=gaia2/video_tokenizer_tiny", "trainer=tiny", *RIG, "trainer.max_steps=2",
-                                   "logger=csv"], root / "tok"))
-    tokenizer = root / "tok" / "checkpoints" / "last.ckpt"
-    generate(compose_config("generate", ["mode=encode", *RIG, f"ckpt={tokenizer}", f"out_dir={root / 'latents'}",
-                                         "data.source.clip_len=16", "data.source.num_clips=4"], root / "enc"))
-    train(compose_config("train", ["experiment=gaia2/world_model_tiny", "trainer=tiny", "trainer.max_steps=2",
-                                   f"data.path={root / 'latents'}", "data.batch_size=2", "logger=csv",
-                                   "extras.print_config=false"], root / "wm"))
-    return {"tokenizer": tokenizer, "world_model": root / "wm" / "checkpoints" / "last.ckpt",
-            "latents": root / "latents"}
+def checkpoints(gaia2_tiny: dict[str, Path]) -> dict[str, Path]:
+    """The tiny GAIA-2 chain of tests/tiny_checkpoints.py, trained once for the whole run."""
+    return gaia2_tiny
 
 
 def run(checkpoints: dict[str, Path], run_dir: Path, mode: str, *extra: str) -> dict:

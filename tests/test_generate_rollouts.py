@@ -22,42 +22,20 @@ from gaia_app.data.synthetic.export import export
 from gaia_app.data.video_io import video_info
 from gaia_app.tasks.generate import generate
 from gaia_app.tasks.rollout import staging
-from gaia_app.tasks.train import train
 from gaia_app.viz.gallery import make_gallery
 from gaia_app.viz.screenshot import ViewerUnavailable, screenshot_recording
 from tests.conftest import compose_config
+from tests.tiny_checkpoints import GAIA1_SIZE
 
-QUIET = ["extras.print_config=false", "logger=none", "callbacks=model_checkpoint"]
-# 32×48 images → 8×12 = 96 tokens per frame at D = 4: a quarter of the tiny preset's sampling work
-SIZE = ["data.height=32", "data.width=48"]
-WM_NET = ["model.net.dim=32", "model.net.depth=1", "model.net.heads=2", "model.net.kv_heads=1"]
-DECODER_NET = ["model.net.channels=8", "model.net.channel_mults=[1,2]", "model.net.attention_levels=[1]",
-               "model.net.token_dim=8", "model.net.heads=2", "model.net.vocab_size=512",
-               "model.net.token_grid=[8,12]", "model.net.image_size=[32,48]"]
+SIZE = GAIA1_SIZE  # 32×48: 96 tokens per frame, as the chain was trained (tests/tiny_checkpoints.py)
 # 1 s at 6.25 Hz = 7 generated frames after 2 context frames: 9 frames → 4·9 − 3 = 33 at 25 Hz
 FUTURE, CONTEXT, VIDEO_FRAMES = 7, 2, 33
 
 
 @pytest.fixture(scope="module")
-def checkpoints(tmp_path_factory) -> dict[str, Path]:
-    root = tmp_path_factory.mktemp("gaia1")
-    train(compose_config("train", ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "trainer.max_steps=1",
-                                   "data=synthetic_frames_tiny", *SIZE, *QUIET], root / "tokenizer"))
-    tokenizer = root / "tokenizer" / "checkpoints" / "last.ckpt"
-    generate(compose_config("generate", ["mode=tokenize", "data=synthetic_tiny", f"ckpt={tokenizer}",
-                                         f"out_dir={root / 'tokens'}", "extras.print_config=false", *SIZE],
-                            root / "tokenize"))
-    train(compose_config("train", ["experiment=gaia1/world_model_tiny", "trainer=tiny", "trainer.max_steps=2",
-                                   "trainer.limit_val_batches=0", f"data.path={root / 'tokens' / 'train'}",
-                                   "data.frame_stride=1", "model.net.image_tokens=96", *WM_NET, *QUIET],
-                         root / "world_model"))
-    train(compose_config("train", ["experiment=gaia1/video_decoder_tiny", "trainer=tiny", "trainer.max_steps=1",
-                                   "trainer.limit_val_batches=0", f"model.tokenizer_ckpt={tokenizer}",
-                                   "data.source.num_clips=2", "data.val_source.num_clips=1", *SIZE, *DECODER_NET,
-                                   *QUIET],
-                         root / "decoder"))
-    return {"tokenizer_ckpt": tokenizer, "world_model_ckpt": root / "world_model" / "checkpoints" / "last.ckpt",
-            "decoder_ckpt": root / "decoder" / "checkpoints" / "last.ckpt"}
+def checkpoints(gaia1_tiny: dict[str, Path]) -> dict[str, Path]:
+    """The tiny GAIA-1 chain of tests/tiny_checkpoints.py, trained once for the whole run."""
+    return gaia1_tiny
 
 
 def run(checkpoints: dict[str, Path], run_dir: Path, *overrides: str, decoder: bool = True) -> dict:

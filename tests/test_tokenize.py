@@ -13,20 +13,16 @@ import gaia_app.utils.run_dir as run_dir_module
 from gaia_app.data.datamodules import TokenCacheDataModule
 from gaia_app.data.token_cache import find_segments, load_segment
 from gaia_app.tasks.generate import generate
-from gaia_app.tasks.train import train
 from gaia_app.utils.locks import LOCK_FILE
 from tests.conftest import compose_config
 
-TINY = ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "data=synthetic_frames_tiny", "extras.print_config=false"]
 # 8 train + 2 val clips of 8 frames at 25 Hz (data=synthetic_tiny), kept at the source rate
 TOKENIZE = ["mode=tokenize", "data=synthetic_tiny", "extras.print_config=false"]
 
 
 @pytest.fixture(scope="module")
-def ckpt(tmp_path_factory) -> Path:
-    run_dir = tmp_path_factory.mktemp("tok_run")
-    train(compose_config("train", [*TINY, "trainer.max_steps=2", "logger=csv"], run_dir))
-    return run_dir / "checkpoints" / "last.ckpt"
+def ckpt(tiny_tokenizer_ckpt: Path) -> Path:
+    return tiny_tokenizer_ckpt
 
 
 def run_tokenize(ckpt: Path, run_dir: Path, out_dir: Path, *extra: str) -> dict:

@@ -23,12 +23,8 @@ TINY_NET = ["model.net.channels=8", "model.net.channel_mults=[1,2,2]", "model.ne
 
 
 @pytest.fixture(scope="module")
-def tokenizer_ckpt(tmp_path_factory) -> Path:
-    run = tmp_path_factory.mktemp("tokenizer")
-    train(compose_config("train", ["experiment=gaia1/tokenizer_tiny", "trainer=tiny", "trainer.max_steps=1",
-                                   "data=synthetic_frames_tiny", "extras.print_config=false", "logger=none",
-                                   "callbacks=model_checkpoint"], run))
-    return run / "checkpoints" / "last.ckpt"
+def tokenizer_ckpt(tiny_tokenizer_ckpt: Path) -> Path:
+    return tiny_tokenizer_ckpt
 
 
 @pytest.fixture(scope="module")
