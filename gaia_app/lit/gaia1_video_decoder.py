@@ -29,12 +29,12 @@ from gaia_app.diffusion.video_sampling import sample_window
 from gaia_app.lit.base import GaiaModule, decay_groups
 from gaia_app.lit.checkpoint import load_module
 from gaia_app.models.gaia1.decoder_tasks import TASKS, DecoderTask, TaskSampler, drop_tokens, make_task
-from gaia_app.models.gaia1.tokenizer import ImageTokenizer
 from gaia_app.models.gaia1.video_decoder import VideoDecoder
+from gaia_app.models.tokenizer_protocol import DiscreteTokenizer
 from gaia_app.weights.folders import load_nets, shipped_folder
 
 
-def load_tokenizer(source: str) -> ImageTokenizer:
+def load_tokenizer(source: str) -> DiscreteTokenizer:
     """The GAIA-1 image tokenizer of a training checkpoint (`.ckpt`), or of a shipped weights folder (a folder
     with tokenizer.safetensors, or a name under gaia_app/weights such as "gaia1"), so that a decoder can be trained
     on the tokens of the shipped reference weights."""
@@ -74,7 +74,7 @@ class VideoDecoderModule(GaiaModule):
         self.token_dropout, self.l1_weight, self.l2_weight = token_dropout, l1_weight, l2_weight
         self.ema_decay, self.media_steps = ema_decay, media_steps
         self.ema: AveragedModel | None = None
-        self.frozen: dict[str, ImageTokenizer] = {}  # a plain dict: not a submodule (see the module docstring)
+        self.frozen: dict[str, DiscreteTokenizer] = {}  # a plain dict: not a submodule (see the module docstring)
 
     # ---- networks ---------------------------------------------------------------------------------
 
@@ -97,7 +97,7 @@ class VideoDecoderModule(GaiaModule):
         return self.ema.module  # type: ignore[union-attr, return-value]
 
     @property
-    def tokenizer(self) -> ImageTokenizer:
+    def tokenizer(self) -> DiscreteTokenizer:
         """The frozen image tokenizer, loaded from `tokenizer_ckpt` on first use."""
         if "tokenizer" not in self.frozen:
             if not self.tokenizer_ckpt:
