@@ -237,7 +237,9 @@ def _traffic(rng: np.random.Generator, setting: Setting, scenario: Scenario, lay
     if plan.change_to is not None:
         corridors.append((EGO_START - 25.0, corridor_end, float(geo.lane_offset(plan.change_to))))
     parts = []
-    if plan.behaviour == "follow" and plan.actions is None:
+    # the lead of a "follow" clip is part of the scene whoever drives the ego: a re-simulation of the clip under
+    # other commands (plan.actions given) keeps it, and keeps every later draw of the traffic the same
+    if plan.behaviour == "follow":
         lead = AgentSpec(str(rng.choice(LEAD_CATEGORIES)), gap=rng.uniform(6.0, 35.0),
                          speed=v0 + rng.uniform(-1.5, 1.0))
         parts.append(place_specs(rng, [lead], layout, EGO_START, Ego.front, plan.lane, 0))
