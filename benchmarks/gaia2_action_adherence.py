@@ -35,7 +35,7 @@ from gaia_app.eval.report import ARROWS
 from gaia_app.pipelines.gaia2_edits import cut_steps
 from gaia_app.protocols import gaia2_actions
 from gaia_app.protocols.controllability import CONTRASTS
-from gaia_app.protocols.evaluate import check_metrics
+from gaia_app.protocols.fidelity import check_metrics
 from gaia_app.protocols.gaia2_evaluate import fidelity_table, rig_samples
 from gaia_app.protocols.loading import load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
@@ -92,7 +92,7 @@ def adherence(folders: list[str], overrides: list[str], scales: list[float] | No
     if not tables or set(tables) - set(TABLES):
         raise ValueError(f"--tables {list(tables)}: choose from {list(TABLES)}")
     if "fidelity" in tables:
-        check_metrics(cfg)
+        check_metrics(cfg.evaluate)
         if "agent_iou" in cfg.evaluate.metrics:
             raise ValueError("--fidelity scores evaluate.metrics without a segmentation probe: drop agent_iou, e.g. "
                              "'evaluate.metrics=[psnr,ssim,fvmd]'")

@@ -197,6 +197,13 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
     assert set(discrimination) == {"speed_contrast", "curvature_contrast"}
     assert discrimination["speed_contrast"]["n"] == 2 and discrimination["speed_contrast"]["own_nats"] > 0
     assert "Command discrimination (diagnostic" in table
+    # fidelity against the real continuations under the same commands (issue 49 item 4)
+    fidelity = results["actions"]["fidelity"]
+    assert fidelity["metrics"] == ["psnr", "ssim", "fvmd"] and set(fidelity["rows"]) == {"tokenized", "model",
+                                                                                          "floor", "held"}
+    assert all(np.isfinite(v) for row in fidelity["rows"].values() for v in row.values())
+    assert fidelity["rows"]["tokenized"] != fidelity["rows"]["model"] != fidelity["rows"]["held"]
+    assert "| held last context frame |" in table and "fvmd ↓" in table
     assert json.loads((tmp_path / "first" / "controllability.json").read_text())["actions"]["contexts"] == 2
     # the probes are saved and reused: a second run with them trains nothing and scores the real rows identically
     probes = tmp_path / "first" / "probes"
@@ -205,6 +212,11 @@ def test_controllability_mode_scores_model_ceiling_and_floor(checkpoints, tmp_pa
     assert again["actions"]["rows"]["reference"] == rows["reference"]
     assert again["actions"]["rows"]["ceiling"] == rows["ceiling"]
     assert again["actions"]["rows"]["tokenized"] == rows["tokenized"]  # the tokenizer round trip is deterministic
+    assert again["actions"]["fidelity"]["rows"]["held"] == fidelity["rows"]["held"]
+    with pytest.raises(ValueError, match="controllability.fidelity.metrics has agent_iou"):
+        run(checkpoints, tmp_path / "third", *args, "controllability.fidelity.metrics=[psnr,agent_iou]", decoder=False)
+    with pytest.raises(ValueError, match="set controllability.fidelity.lpips_checkpoint"):
+        run(checkpoints, tmp_path / "fourth", *args, "controllability.fidelity.metrics=[lpips]", decoder=False)
 
 
 def test_command_discrimination_scores_real_futures_teacher_forced(checkpoints, tmp_path: Path) -> None:
@@ -292,7 +304,7 @@ def test_evaluate_mode_bad_settings_fail_before_any_work(checkpoints, tmp_path: 
 
 
 def test_evaluate_scores_a_perfect_future_perfectly_and_a_frozen_one_worse() -> None:
-    from gaia_app.protocols.evaluate import score
+    from gaia_app.protocols.fidelity import score
 
     g = torch.Generator().manual_seed(0)
     base = torch.nn.functional.avg_pool2d(torch.rand(4, 3, 40, 72, generator=g) * 2 - 1, 5, 1, 2)

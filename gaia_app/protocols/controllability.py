@@ -19,6 +19,8 @@ one run:
                perfect model that ignored the commands would score. It checks the probes without any model:
                they can judge adherence only if the ceiling's error is at most half of it.
    Intervals are over contexts (each context's error averaged over the commands).
+   Fidelity (`controllability.fidelity`): the tokenized, model and floor futures and the held last context frame
+   against the ceiling's real continuations: psnr / ssim / lpips per frame, fvmd / fid / fdd between the sets.
 3. Text: each prompt of `controllability.prompts` (attribute → values) generates from text alone.
    ceiling = real held-out clips that have the value (world drawn uniformly over weather and time of day);
    tokenized = those clips encoded and decoded by the tokenizer (a diagnostic, as above);
@@ -66,11 +68,13 @@ from gaia_app.eval.intervals import mean_interval, share_interval
 from gaia_app.models.probes import ATTRIBUTES
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.gaia1_inputs import future_actions, future_frames
+from gaia_app.protocols.fidelity import check_metrics, feature_metrics, score
 from gaia_app.protocols.loading import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.weights.folders import shipped_folder
 
 SOURCE_FPS = 25.0
+FIDELITY_SETTINGS = "controllability.fidelity"
 # the adherence metrics with targets: contrast errors of speed (accelerate vs brake) and curvature (left vs right)
 CONTRASTS = ("speed_contrast", "curvature_contrast")
 # every weather and time of day equally often: probes see enough snow and night, ceilings have clips of each value
@@ -296,7 +300,33 @@ def action_table(cfg: DictConfig, pipeline: Gaia1Pipeline, probe, generator: tor
     discrimination = command_discrimination(pipeline, real_tokens.unflatten(0, per_command),
                                             commanded.unflatten(0, per_command), t0, pairs)
     return {"commands": [list(cmd) for cmd in commands], "contexts": n, "scored_steps": frames - 1, "rows": rows,
-            "contrasts": contrasted, "checks": action_checks(rows), "discrimination": discrimination}
+            "contrasts": contrasted, "checks": action_checks(rows), "discrimination": discrimination,
+            "fidelity": fidelity_rows(c.fidelity, videos, t0)}
+
+
+FIDELITY_ROWS = {"tokenized": "tokenized real (ceiling)", "model": "model (rollouts)", "floor": "no actions (floor)",
+                 "held": "held last context frame"}
+
+
+def fidelity_rows(settings: DictConfig, videos: dict[str, torch.Tensor], t0: int) -> dict[str, Any]:
+    """Each row's futures (C·N, T, 3, H, W) against the real continuations under the same commands (the ceiling's
+    re-simulations): the metrics of `controllability.fidelity` (issue 49 item 4), so that sharper and more faithful
+    futures show as numbers beside the adherence ones."""
+    real = videos["ceiling"]
+    held = torch.cat([real[:, :t0], real[:, t0 - 1:t0].expand(-1, real.shape[1] - t0, -1, -1, -1)], 1)
+    candidates = {**{key: videos[key] for key in ("tokenized", "model", "floor")}, "held": held}
+    metrics, networks = list(settings.metrics), feature_metrics(settings, FIDELITY_SETTINGS)
+    return {"metrics": metrics, "rows": {key: score(metrics, real, video, t0, networks)
+                                         for key, video in candidates.items()}}
+
+
+def check_fidelity(settings: DictConfig) -> None:
+    """Named errors before any work: unknown metrics, missing local weights; agent_iou needs masks this protocol
+    does not have (mode=evaluate scores it)."""
+    check_metrics(settings, FIDELITY_SETTINGS)
+    if "agent_iou" in settings.metrics:
+        raise ValueError(f"{FIDELITY_SETTINGS}.metrics has agent_iou: the controllability table has no agent masks; "
+                         "mode=evaluate scores it")
 
 
 def context_groups(commands: int, contexts: int) -> torch.Tensor:
@@ -378,7 +408,7 @@ def markdown(results: dict[str, Any]) -> str:
              "that ignores its commands scores the commanded difference. MAE: mean |probed − commanded| over all "
              "commands (diagnostic; it carries the probe's per-scene bias).", "",
              *action_rows_markdown(actions, ACTION_ROWS), "", *realised_rows_markdown(actions),
-             *discrimination_markdown(actions)]
+             *discrimination_markdown(actions), *fidelity_markdown(actions["fidelity"])]
     lines += ["", f"Text adherence: share of rollouts ({text['rollouts_per_prompt']} per prompt, generated from the "
               f"prompt alone; {text.get('floor_rollouts', text['rollouts_per_prompt'])} unprompted rollouts for the "
               "floor, "
@@ -391,6 +421,19 @@ def markdown(results: dict[str, Any]) -> str:
         f"{'yes' if text['checks'][t]['probe_reads_it'] else 'NO'} ({cell_accuracy(text['rows']['ceiling'][t])})"
         for t in text["targets"]) + " |")
     return "\n".join(lines) + "\n"
+
+
+def fidelity_markdown(fidelity: dict[str, Any]) -> list[str]:
+    """The fidelity table: each row's futures against the real continuations under the same commands."""
+    metrics = fidelity["metrics"]
+    arrows = {"psnr": "↑", "ssim": "↑", "lpips": "↓", "fvmd": "↓", "fid": "↓", "fdd": "↓"}
+    lines = ["", "Fidelity against the real continuations under the same commands (per generated frame; fvmd, fid, "
+             "fdd between the sets of clips):", "",
+             "| futures vs real continuations | " + " | ".join(f"{m} {arrows[m]}" for m in metrics) + " |",
+             "|---" * (len(metrics) + 1) + "|"]
+    lines += [f"| {FIDELITY_ROWS[key]} | " + " | ".join(f"{row[m]:.3f}" for m in metrics) + " |"
+              for key, row in fidelity["rows"].items()]
+    return lines
 
 
 def action_rows_markdown(actions: dict[str, Any], names: dict[str, str]) -> list[str]:
@@ -453,6 +496,7 @@ def cell_accuracy(row: dict[str, float] | None) -> str:
 
 def controllability(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Run the protocol of the module docstring; returns the results (also written to the run dir)."""
+    check_fidelity(cfg.controllability.fidelity)
     # the probes read frames decoded one by one by the tokenizer (as when they were checked on real frames)
     pipeline = load_pipeline(cfg, video_decoder=False)
     t = cfg.context.frames + future_frames(cfg.seconds, pipeline.rate, at_least=2)

@@ -21,86 +21,27 @@ the table evaluation.md into the run dir.
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 from omegaconf import DictConfig
 
-from gaia_app.encoders.perceptual import load_perceptual
 from gaia_app.eval.agent_iou import agent_clips, agent_iou, train_agent_probe
 from gaia_app.eval.controllability import probe_clips
-from gaia_app.eval.feature_distance import fdd, fid
-from gaia_app.eval.fvmd import FVMD
-from gaia_app.eval.metrics import psnr, ssim
 from gaia_app.models.probes import AgentSegmentationProbe
 from gaia_app.pipelines.gaia1_inputs import future_frames
 from gaia_app.protocols.controllability import rollout_frames, world_samples
+from gaia_app.protocols.fidelity import check_metrics, feature_metrics, score
 from gaia_app.protocols.loading import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
-
-METRICS = ("psnr", "ssim", "lpips", "fvmd", "fid", "fdd", "agent_iou")
 
 
 def check_settings(cfg: DictConfig) -> None:
     """Named errors before any work: unknown metrics, fdd without a checkpoint, too few contexts."""
-    check_metrics(cfg)
+    check_metrics(cfg.evaluate)
     if cfg.evaluate.contexts < 2:
         raise ValueError(f"evaluate.contexts={cfg.evaluate.contexts}: Fréchet distances need at least 2 clips per set")
-
-
-def check_metrics(cfg: DictConfig) -> None:
-    """Named errors for unknown metrics and for fid / fdd / lpips without their local checkpoints."""
-    e = cfg.evaluate
-    unknown = sorted(set(e.metrics) - set(METRICS))
-    if unknown or not e.metrics:
-        raise ValueError(f"evaluate.metrics={list(e.metrics)}: choose from {list(METRICS)}")
-    if "fid" in e.metrics and not e.fid_checkpoint:
-        raise ValueError("evaluate.metrics has fid: set evaluate.fid_checkpoint to local Inception-v3 FID weights")
-    if "fdd" in e.metrics and not e.fdd_checkpoint:
-        raise ValueError("evaluate.metrics has fdd: set evaluate.fdd_checkpoint to a local DINO checkpoint")
-    if "lpips" in e.metrics and not e.lpips_checkpoint:
-        raise ValueError("evaluate.metrics has lpips: set evaluate.lpips_checkpoint to local VGG16 weights "
-                         "(and evaluate.lpips_heads_checkpoint to the LPIPS heads)")
-
-
-def feature_metrics(cfg: DictConfig) -> dict[str, Any]:
-    """The networks of the chosen lpips / fid / fdd metrics, loaded once for every row."""
-    e, out = cfg.evaluate, {}
-    if "lpips" in e.metrics:
-        out["lpips"] = load_perceptual(checkpoint=e.lpips_checkpoint, heads_checkpoint=e.lpips_heads_checkpoint,
-                                       config_key="evaluate.lpips_checkpoint")
-    if "fid" in e.metrics:
-        out["fid"] = fid(e.fid_checkpoint, "evaluate.fid_checkpoint")
-    if "fdd" in e.metrics:
-        out["fdd"] = fdd(e.fdd_checkpoint, e.fdd_kind, "evaluate.fdd_checkpoint")
-    return out
-
-
-def score(metrics: Sequence[str], real: torch.Tensor, candidate: torch.Tensor, t0: int,
-          networks: dict[str, Any] | None = None,
-          agents: tuple[AgentSegmentationProbe, torch.Tensor] | None = None) -> dict[str, float]:
-    """Metrics of candidate futures against real ones; both (b, t0 + f, 3, H, W), scored from frame t0 − 1 on.
-    networks: `feature_metrics` (lpips distance, fid / fdd metrics whose networks each row reuses); agents: the agent
-    probe and the real clips' agent masks (b, t0 + f, H, W), for agent_iou."""
-    networks, out = networks or {}, {}
-    real_future, future = real[:, t0:].flatten(0, 1), candidate[:, t0:].flatten(0, 1)
-    if "psnr" in metrics:
-        out["psnr"] = float(psnr(future, real_future).mean())
-    if "ssim" in metrics:
-        out["ssim"] = float(ssim(future, real_future).mean())
-    if "lpips" in metrics:
-        with torch.no_grad():
-            out["lpips"] = float(networks["lpips"](future, real_future).mean())
-    if "fvmd" in metrics:
-        out["fvmd"] = FVMD().update(real[:, t0 - 1:], real=True).update(candidate[:, t0 - 1:], real=False).compute()
-    for name in ("fid", "fdd"):
-        if name in metrics:
-            out[name] = networks[name].fresh().update(real_future, real=True).update(future, real=False).compute()
-    if agents is not None:
-        out["agent_iou"] = agent_iou(agents[0], candidate[:, t0:], agents[1][:, t0:])
-    return out
 
 
 def agent_probe(cfg: DictConfig, samples: list, height: int, width: int, frames: int, rate: float
@@ -142,7 +83,7 @@ def evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     tokens = torch.stack([pipeline.encode(clip) for clip in real])
     reconstructed = pipeline.render(tokens, generator)[0]
     held = torch.cat([real[:, :t0], real[:, t0 - 1 : t0].expand(-1, frames, -1, -1, -1)], dim=1)
-    metrics, networks = list(cfg.evaluate.metrics), feature_metrics(cfg)
+    metrics, networks = list(cfg.evaluate.metrics), feature_metrics(cfg.evaluate)
     rows = {name: score(metrics, real, candidate, t0, networks, agents) for name, candidate in (
         ("model (video rollouts)", model), ("tokens (real continuation, tokenized and rendered)", reconstructed),
         ("held frame (last context frame repeated)", held))}

@@ -60,7 +60,7 @@ from gaia_app.pipelines.gaia2 import Gaia2Pipeline
 from gaia_app.pipelines.gaia2_edits import cut_steps
 from gaia_app.pipelines.gaia2_world_model import Guidance
 from gaia_app.protocols import gaia2_actions
-from gaia_app.protocols.evaluate import check_metrics, feature_metrics, score
+from gaia_app.protocols.fidelity import check_metrics, feature_metrics, score
 from gaia_app.protocols.loading import load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
 
@@ -235,7 +235,7 @@ def fidelity_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[
     real_clips, mask_clips = torch.cat(real), torch.cat(masks)  # (N·v, T, 3, H, W), (N·v, T, H, W)
     held = torch.cat([real_clips[:, :first],
                       real_clips[:, first - 1 : first].expand(-1, frames - first, -1, -1, -1)], 1)
-    metrics, networks = list(cfg.evaluate.metrics), feature_metrics(cfg)
+    metrics, networks = list(cfg.evaluate.metrics), feature_metrics(cfg.evaluate)
     agents = (probe, mask_clips) if "agent_iou" in metrics else None
     candidates = {"model (rollouts)": torch.cat(model), "tokenized real (ceiling)": torch.cat(tokenized),
                   "held frame (floor)": held}
@@ -350,7 +350,7 @@ def gaia2_evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     e = cfg.model.evaluate
     if e.contexts < 1:
         raise ValueError(f"model.evaluate.contexts={e.contexts}: expected at least 1")
-    check_metrics(cfg)
+    check_metrics(cfg.evaluate)
     gaia2_actions.check_action_agents(cfg)
     gaia2_actions.probe_mirror(cfg)
     pipeline = load_gaia2(cfg)
