@@ -120,6 +120,7 @@ def test_the_benchmark_scores_the_shipped_weights_and_draws_the_strip(tmp_path: 
     stored = json.loads((tmp_path / "r.json").read_text())
     assert stored["contexts"] == 2 and len(stored["clip_indices"]) == 2
     assert set(stored["persistence"]) == {"real", "tokenized", "model"}
+    assert set(stored["persistence_where_read_in_real"]) == {"tokenized", "model"}
     assert set(stored["interaction"]) == {"labels", "real", "tokenized", "model"}
     assert stored["interaction"]["labels"]["share"]["mean"] == 1.0  # the world: accelerating closes in on the lead
     assert 0 <= results["persistence"]["model"]["mean"] <= 1

@@ -10,7 +10,8 @@ vehicle.
 
 - persistence: of the future frames whose real continuation has a lead vehicle within 30 m, the share in which
   one is read (rows: the real continuation itself, its tokenizer round trip (the ceiling of any world model over
-  these tokens), the model's futures);
+  these tokens), the model's futures); and of the frames in which the reader finds it in the real continuation
+  (a vehicle the reader cannot see in the real frame, e.g. unlit at night, cannot be asked of a future);
 - interaction: the share of contexts whose gap at the horizon is smaller under "accelerate" than under "brake"
   (rows: the world's labels, the read real continuation, its round trip, the model);
 - multiple futures: per context, the spread of the horizon gap over `futures` futures sampled under the real
@@ -184,14 +185,17 @@ def agent_futures(pipeline: Gaia1Pipeline, probe: AgentSegmentationProbe, seed: 
     per_command = (len(commands), contexts, frames)
     interaction = {"labels": interaction_row(labelled.reshape(per_command), commands)}
     interaction |= {name: interaction_row(gaps.reshape(per_command), commands) for name, gaps in read.items()}
-    present = np.isfinite(labelled)
     by_context = lambda x: x.reshape(per_command).transpose(1, 0, 2).reshape(contexts, -1)  # noqa: E731
-    persist = {name: persistence(by_context(np.isfinite(gaps)), by_context(present)).as_dict()
+    labelled_present, visible = by_context(np.isfinite(labelled)), by_context(np.isfinite(read["real"]))
+    persist = {name: persistence(by_context(np.isfinite(gaps)), labelled_present).as_dict()
                for name, gaps in read.items()}
+    persist_visible = {name: persistence(by_context(np.isfinite(read[name])), visible).as_dict()
+                       for name in ("tokenized", "model")}
     spread_table, gallery = futures_spread(pipeline, probe, own, t0, futures, spread_contexts, generator)
     results = {"world_seed": seed, "clip_indices": indices, "contexts": contexts, "context_frames": t0,
                "future_frames": frames, "rate": rate, "commands": [list(c) for c in commands],
                "reader_on_real_frames": score_reading(read["real"], labelled), "persistence": persist,
+               "persistence_where_read_in_real": persist_visible,
                "interaction": interaction, "multiple_futures": spread_table}
     return results, {"futures": gallery, "real": own.frames[0:1, t0:]}
 
@@ -208,11 +212,14 @@ def markdown(results: dict[str, Any]) -> str:
              f"{results['rate']:g} Hz; the reader on real frames finds {reader['found_where_labelled']:.2f} of the "
              f"labelled lead vehicles, reads one in {reader['read_where_none']:.2f} of the frames without, gap error "
              f"{'—' if error is None else cell(error)} m", "",
-             "| row | persistence (target ≥ 0.8) | closer under accelerate than brake (target ≥ 0.8) |",
-             "|---|---:|---:|", f"| world labels | — | {cell(results['interaction']['labels']['share'])} |"]
+             "| row | persistence: of the labelled frames (target ≥ 0.8) | of the frames where it is read in the real "
+             "continuation | closer under accelerate than brake (target ≥ 0.8) |",
+             "|---|---:|---:|---:|", f"| world labels | — | — | {cell(results['interaction']['labels']['share'])} |"]
     names = {"real": "real continuation, read", "tokenized": "tokenizer round trip (ceiling)", "model": "model"}
+    visible = results["persistence_where_read_in_real"]
     for key, name in names.items():
         lines.append(f"| {name} | {cell(results['persistence'][key])} | "
+                     f"{cell(visible[key]) if key in visible else '1 (by definition)'} | "
                      f"{cell(results['interaction'][key]['share'])} |")
     spread_table = results["multiple_futures"]
     spreads = ", ".join("—" if m is None else f"{m:.1f}" for m in spread_table["model_spread_m"])
