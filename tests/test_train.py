@@ -67,8 +67,10 @@ def test_generate_reconstructs_from_checkpoint(trained_run: Path, tmp_path: Path
 
 
 def test_lightning_module_overfits_a_batch(tmp_path: Path) -> None:
-    """Through the full Lightning stack: the train loss on two repeated batches falls by ≥ 3×."""
-    cfg = compose_config("train", [*TINY, "debug=overfit", "trainer.max_steps=80", "trainer.val_check_interval=80",
+    """Through the full Lightning stack: the train loss on two repeated batches falls by ≥ 3× (at 32×48, where it
+    falls 4.4× in 80 steps; 4.2× at the preset's 64×112 for 1.7× the time)."""
+    cfg = compose_config("train", [*TINY, "data.height=32", "data.width=48", "debug=overfit", "trainer.max_steps=80",
+                                   "trainer.val_check_interval=80",
                                    "logger=csv", "callbacks=none", "++trainer.enable_checkpointing=false",
                                    "trainer.log_every_n_steps=1", "model.sched.warmup_steps=5"], tmp_path)
     train(cfg)
