@@ -16,7 +16,10 @@ from gaia_app.data.transforms import resample_indices
 from gaia_app.eval.agent_fidelity import VEHICLES, fidelity_frames
 from gaia_app.eval.lead_gap import (
     EGO_FRONT,
+    LanePose,
     closer_under,
+    commanded_pose,
+    following,
     gap_error,
     ground_plane,
     labelled_gaps,
@@ -51,11 +54,30 @@ def test_a_masked_vehicle_in_the_lane_reads_its_gap_and_one_beside_it_does_not()
     masks = torch.zeros(1, 3, 64, 112, dtype=torch.bool)
     masks[0, 0, 36:44, 50:62] = True  # ahead in the lane, lowest row 43
     masks[0, 1, 36:44, 0:6] = True  # far to the side: another lane or the kerb
-    gaps = lead_gaps(masks, torch.zeros(1, 3), ground)
+    gaps = lead_gaps(masks, following(torch.zeros(1, 3)), ground)
     assert gaps[0, 0] == pytest.approx(ground.forward[43, 50:62].min() - EGO_FRONT, abs=1e-4)
     assert np.isnan(gaps[0, 1]) and np.isnan(gaps[0, 2])
-    bent = lead_gaps(masks[:, :1], torch.full((1, 1), 0.2), ground)  # a sharp bend moves the lane off the car
+    bent = lead_gaps(masks[:, :1], following(torch.full((1, 1), 0.2)), ground)  # a sharp bend: lane off the car
     assert np.isnan(bent[0, 0])
+
+
+def test_a_command_that_turns_off_the_road_moves_the_lane_it_reads() -> None:
+    """Steering left on a straight road turns the ego across it: the band along the road then lies to the ego's
+    right, so a car ahead on the road is found there and not straight ahead; keeping the road's curvature leaves
+    the heading at zero."""
+    actions = torch.tensor([[[10.0, 0.02]] * 6, [[10.0, 0.0]] * 6])
+    pose = commanded_pose(actions, torch.zeros(2), rate=6.25)
+    assert (torch.diff(pose.heading[0]) > 0).all() and (pose.heading[1] == 0).all()
+    assert pose.heading[0, -1] == pytest.approx(6 * 10 * 0.02 / 6.25)
+    camera = camera_spec("front", 64, 112)
+    ground = ground_plane(camera)
+    heading = float(pose.heading[0, -1])
+    (u, v), _ = project_points(camera, np.array([[15.0 + EGO_FRONT, -heading * (15.0 + EGO_FRONT), 0.0]]))[0][0], None
+    masks = torch.zeros(1, 1, 64, 112, dtype=torch.bool)
+    masks[0, 0, int(v) - 4:int(v), int(u) - 2:int(u) + 3] = True  # a car on the road, 15 m ahead
+    turned = LanePose(pose.heading[:1, -1:], pose.curvature[:1, -1:])
+    assert np.isfinite(lead_gaps(masks, turned, ground)).all()
+    assert np.isnan(lead_gaps(masks, following(torch.zeros(1, 1)), ground)).all()
 
 
 def test_scores_pool_frames_and_count_missing_readings_as_out_of_range() -> None:
@@ -85,7 +107,7 @@ def test_the_reader_finds_labelled_lead_vehicles_from_true_masks() -> None:
         labels.append(labelled_gaps([sample.clip.frame_meta[p] for p in picked], VEHICLES))
         curvature.append(sample.clip.actions[picked, 1])
     labels = np.stack(labels)
-    read = lead_gaps(masks, torch.tensor(np.stack(curvature)), ground_plane(samples[0].clip.cameras[0]))
+    read = lead_gaps(masks, following(torch.tensor(np.stack(curvature))), ground_plane(samples[0].clip.cameras[0]))
     present = np.isfinite(labels)
     assert present.sum() >= 8
     assert np.isfinite(read[present]).mean() >= 0.9

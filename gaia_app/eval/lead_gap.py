@@ -4,9 +4,11 @@ GAIA-1 §7.2–7.3 show other road users that behave differently in different fu
 generated frame has no labels, so the lead vehicle is read from the agent segmentation probe's mask: each
 pixel on the lower edge of a masked region is where a road user meets the road, and the ground plane (a flat road
 seen by the front camera of the synthetic rig, whose mount is known) gives how far ahead and to the side that
-point lies. The lead vehicle is the nearest such point inside the ego lane, which is bent by the ego's curvature
-(the lane the ego follows bends as the ego turns); its gap is measured like the world's own `lead_agent` label,
-from the ego's front bumper to the vehicle's rear.
+point lies. The lead vehicle is the nearest such point inside the ego's lane band; its gap is measured like the
+world's own `lead_agent` label, from the ego's front bumper to the vehicle's rear, and the band is the label's: along
+the road, through the ego's position. On real clips the ego follows the road (`following`: the road bends with the
+ego's curvature); under a command the road keeps its curvature (the context's) and the command turns the ego across
+it (`commanded_pose`), so the band still runs along the road when the ego steers away.
 
 The ground plane makes far gaps coarse: on the 64×112 front camera one pixel row is about 6 m at 30 m and
 0.6 m at 10 m; `protocols/agent_futures.py` reports how well the reading agrees with the world's labels on real
@@ -64,13 +66,39 @@ def road_contacts(masks: torch.Tensor) -> torch.Tensor:
     return masks & ~below
 
 
-def lead_gaps(masks: torch.Tensor, curvature: torch.Tensor, ground: GroundPlane,
-              max_gap: float = READ_RANGE) -> np.ndarray:
+@dataclass(frozen=True)
+class LanePose:
+    """The ego relative to the road at each frame (N, t): heading (rad, the ego turned left of the road's direction)
+    and the road's curvature (1/m). The lane searched is the band along the road through the ego's own position,
+    as the world's `lead_agent` label takes it (agents whose lateral road coordinate is within the corridor of the
+    ego's)."""
+
+    heading: torch.Tensor
+    curvature: torch.Tensor
+
+
+def following(curvature: torch.Tensor) -> LanePose:
+    """The pose of an ego that follows the road, the road bending with the ego's curvature (N, t)."""
+    return LanePose(torch.zeros_like(curvature, dtype=torch.float32), curvature.float())
+
+
+def commanded_pose(actions: torch.Tensor, road_curvature: torch.Tensor, rate: float) -> LanePose:
+    """The ego's heading relative to a road of constant curvature (N,) 1/m (the road the context drove on) after
+    each commanded step (N, t, 2) (speed m/s, curvature 1/m) at `rate` Hz, starting along the road: a command that
+    turns more or less than the road turns the ego across it (small-angle kinematics)."""
+    speed, turn = actions[..., 0].float(), actions[..., 1].float() - road_curvature[:, None].float()
+    heading = torch.cumsum(speed * turn / rate, dim=1)
+    return LanePose(heading, road_curvature[:, None].float().expand_as(heading))
+
+
+def lead_gaps(masks: torch.Tensor, pose: LanePose, ground: GroundPlane, max_gap: float = READ_RANGE) -> np.ndarray:
     """(N, t) gap (m) to the nearest masked road user in the ego lane, from agent masks (N, t, H, W) bool and the
-    ego's curvature (N, t) 1/m at each frame; NaN where no road contact lies in the lane within `max_gap`."""
+    ego's pose in its lane at each frame; NaN where no road contact lies in the lane within `max_gap`."""
     forward = torch.from_numpy(ground.forward).float()
     left = torch.from_numpy(ground.left).float()
-    lane_centre = curvature[..., None, None].float() * forward.square() / 2  # (N, t, H, W): the lane bends with κ
+    at = lambda x: x[..., None, None]  # noqa: E731  (N, t) → (N, t, 1, 1)
+    # the band's centre line in the ego frame: along the road (turned by the ego's heading, bent by the road)
+    lane_centre = -at(pose.heading) * forward + at(pose.curvature) * forward.square() / 2
     in_lane = (left - lane_centre).abs() <= LANE_HALF_WIDTH
     gap = forward - EGO_FRONT
     usable = road_contacts(masks) & in_lane & torch.isfinite(gap) & (gap > -0.5)

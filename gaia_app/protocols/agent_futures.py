@@ -36,8 +36,10 @@ from gaia_app.eval.controllability import ProbeClips
 from gaia_app.eval.intervals import share_interval
 from gaia_app.eval.lead_gap import (
     LEAD_RANGE,
+    READ_RANGE,
     GroundPlane,
     closer_under,
+    commanded_pose,
     gap_error,
     ground_plane,
     labelled_gaps,
@@ -62,7 +64,7 @@ COMMANDS = (("brake", "straight"), ("accelerate", "straight"), ("keep", "left"),
 @dataclass
 class Continuations:
     """Real clips at the world model's rate: frames (N, T, 3, H, W) in [-1, 1], actions (N, T, 2), the world's lead
-    gaps (N, T) (NaN: no vehicle within 30 m) and the front camera."""
+    gaps (N, T) (NaN: no lead vehicle, at any distance the label reports) and the front camera."""
 
     frames: torch.Tensor
     actions: torch.Tensor
@@ -71,13 +73,15 @@ class Continuations:
 
 
 def at_rate(clip: Clip, rate: float, frames: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
-    """(frames (T, 3, H, W), actions (T, 2), labelled lead gaps (T,)) of the front camera, resampled to `rate`."""
+    """(frames (T, 3, H, W), actions (T, 2), labelled lead gaps (T,), at any distance) of the front camera,
+    resampled to `rate`."""
     clip = resample_clip(clip, rate)
     if clip.frames.shape[1] < frames or clip.actions is None or clip.frame_meta is None:
         raise ValueError(f"agent futures: clip '{clip.clip_id}' has {clip.frames.shape[1]} frames at {rate:g} Hz "
                          f"({frames} needed) and needs actions and frame_meta")
     video = to_float(torch.from_numpy(np.ascontiguousarray(clip.frames[0, :frames])))
-    return video, torch.from_numpy(clip.actions[:frames]).float(), labelled_gaps(clip.frame_meta[:frames], VEHICLES)
+    gaps = labelled_gaps(clip.frame_meta[:frames], VEHICLES, np.inf)
+    return video, torch.from_numpy(clip.actions[:frames]).float(), gaps
 
 
 def stack(parts: list[tuple[torch.Tensor, torch.Tensor, np.ndarray]], ground: GroundPlane) -> Continuations:
@@ -93,7 +97,7 @@ def lead_contexts(seed: int, count: int, height: int, width: int, t0: int, total
     chosen, parts = [], []
     for index in tqdm(range(scan), desc="contexts with a lead vehicle", leave=False):
         part = at_rate(clips[index], rate, total)
-        if np.isfinite(part[2][t0 - 1]):
+        if part[2][t0 - 1] <= LEAD_RANGE:
             chosen.append(index)
             parts.append(part)
             if len(chosen) == count:
@@ -111,21 +115,27 @@ def resimulated(seed: int, indices: list[int], height: int, width: int, commande
     return stack(parts, ground)
 
 
-def read_gaps(probe: AgentSegmentationProbe, frames: torch.Tensor, actions: torch.Tensor,
-              ground: GroundPlane) -> np.ndarray:
-    """(N, t) lead gaps the probe reads on frames (N, t, 3, H, W), the lane bent by each frame's curvature."""
+def read_gaps(probe: AgentSegmentationProbe, frames: torch.Tensor, actions: torch.Tensor, lane_curvature: torch.Tensor,
+              ground: GroundPlane, rate: float) -> np.ndarray:
+    """(N, t) lead gaps the probe reads on frames (N, t, 3, H, W) of futures under commanded actions (N, t, 2), the
+    lane keeping the road's curvature (N,) (the context's last) while the commands may turn the ego off it."""
     with torch.no_grad():
         masks = predicted_agents(probe, frames)
-    return lead_gaps(masks, actions[..., 1], ground)
+    return lead_gaps(masks, commanded_pose(actions, lane_curvature, rate), ground)
+
+
+def within(gaps: np.ndarray, limit: float) -> np.ndarray:
+    """The gaps at most `limit` m, NaN elsewhere."""
+    return np.where(gaps <= limit, gaps, np.nan)
 
 
 def score_reading(read: np.ndarray, labelled: np.ndarray) -> dict[str, Any]:
-    """How well the reader agrees with the world's labels on real frames: found where labelled, read where not,
-    and the gap error."""
-    present = np.isfinite(labelled)
-    error = gap_error(read, labelled)
+    """How well the reader agrees with the world's labels (gaps at any distance) on real frames: found where a lead
+    vehicle is labelled within 30 m, read where none is labelled within the reading range, and the gap error."""
+    present, anywhere = np.isfinite(within(labelled, LEAD_RANGE)), np.isfinite(within(labelled, READ_RANGE))
+    error = gap_error(read, within(labelled, LEAD_RANGE))
     return {"found_where_labelled": float((np.isfinite(read) & present).sum() / max(present.sum(), 1)),
-            "read_where_none": float((np.isfinite(read) & ~present).sum() / max((~present).sum(), 1)),
+            "read_where_none": float((np.isfinite(read) & ~anywhere).sum() / max((~anywhere).sum(), 1)),
             "gap_error_m": None if error is None else error.as_dict()}
 
 
@@ -156,7 +166,8 @@ def futures_spread(pipeline: Gaia1Pipeline, probe: AgentSegmentationProbe, own: 
         tokens = pipeline.encode(own.frames[i]).unsqueeze(0).repeat(futures, 1, 1, 1)
         rendered = pipeline.render(tokens, generator)[0][:, t0:]
         for name, frames_read in (("model", video), ("round_trip", rendered)):
-            horizon = read_gaps(probe, frames_read, actions[:, t0:], own.ground)[:, -1]
+            horizon = read_gaps(probe, frames_read, actions[:, t0:], actions[:, t0 - 1, 1], own.ground,
+                                pipeline.rate)[:, -1]
             rows[f"{name}_spread_m"].append(spread(horizon))
             rows[f"{name}_found"].append(int(np.isfinite(horizon).sum()))
     wider = [m is not None and m > (r or 0.0) for m, r in zip(rows["model_spread_m"], rows["round_trip_spread_m"])]
@@ -179,9 +190,9 @@ def agent_futures(pipeline: Gaia1Pipeline, probe: AgentSegmentationProbe, seed: 
               "model": rollout_frames(pipeline, own.frames[:, :t0].repeat(len(commands), 1, 1, 1, 1), frames,
                                       len(commanded), None, commanded, generator,
                                       context_groups(len(commands), contexts))[:, t0:]}
-    future_actions = commanded[:, t0:]
-    read = {name: read_gaps(probe, video, future_actions, own.ground) for name, video in videos.items()}
-    labelled = real.gaps[:, t0:]
+    future_actions, road = commanded[:, t0:], commanded[:, t0 - 1, 1]  # the road's curvature: the context's last
+    read = {name: read_gaps(probe, video, future_actions, road, own.ground, rate) for name, video in videos.items()}
+    labelled = within(real.gaps[:, t0:], LEAD_RANGE)
     per_command = (len(commands), contexts, frames)
     interaction = {"labels": interaction_row(labelled.reshape(per_command), commands)}
     interaction |= {name: interaction_row(gaps.reshape(per_command), commands) for name, gaps in read.items()}
@@ -194,7 +205,7 @@ def agent_futures(pipeline: Gaia1Pipeline, probe: AgentSegmentationProbe, seed: 
     spread_table, gallery = futures_spread(pipeline, probe, own, t0, futures, spread_contexts, generator)
     results = {"world_seed": seed, "clip_indices": indices, "contexts": contexts, "context_frames": t0,
                "future_frames": frames, "rate": rate, "commands": [list(c) for c in commands],
-               "reader_on_real_frames": score_reading(read["real"], labelled), "persistence": persist,
+               "reader_on_real_frames": score_reading(read["real"], real.gaps[:, t0:]), "persistence": persist,
                "persistence_where_read_in_real": persist_visible,
                "interaction": interaction, "multiple_futures": spread_table}
     return results, {"futures": gallery, "real": own.frames[0:1, t0:]}
@@ -210,7 +221,8 @@ def markdown(results: dict[str, Any]) -> str:
     lines = [f"{results['contexts']} contexts of world {results['world_seed']} with a lead vehicle within 30 m, "
              f"{results['context_frames']} context frames, {results['future_frames']} future frames at "
              f"{results['rate']:g} Hz; the reader on real frames finds {reader['found_where_labelled']:.2f} of the "
-             f"labelled lead vehicles, reads one in {reader['read_where_none']:.2f} of the frames without, gap error "
+             f"labelled lead vehicles, reads one in {reader['read_where_none']:.2f} of the frames with none within "
+             f"{READ_RANGE:g} m, gap error "
              f"{'—' if error is None else cell(error)} m", "",
              "| row | persistence: of the labelled frames (target ≥ 0.8) | of the frames where it is read in the real "
              "continuation | closer under accelerate than brake (target ≥ 0.8) |",
