@@ -68,7 +68,7 @@ from gaia_app.eval.intervals import mean_interval, share_interval
 from gaia_app.models.probes import ATTRIBUTES
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.gaia1_inputs import future_actions, future_frames
-from gaia_app.protocols.fidelity import check_metrics, feature_metrics, score
+from gaia_app.protocols.fidelity import check_metrics, fidelity_table, held_frame, table_markdown
 from gaia_app.protocols.loading import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.weights.folders import shipped_folder
@@ -310,14 +310,10 @@ FIDELITY_ROWS = {"tokenized": "tokenized real (ceiling)", "model": "model (rollo
 
 def fidelity_rows(settings: DictConfig, videos: dict[str, torch.Tensor], t0: int) -> dict[str, Any]:
     """Each row's futures (C·N, T, 3, H, W) against the real continuations under the same commands (the ceiling's
-    re-simulations): the metrics of `controllability.fidelity` (issue 49 item 4), so that sharper and more faithful
-    futures show as numbers beside the adherence ones."""
-    real = videos["ceiling"]
-    held = torch.cat([real[:, :t0], real[:, t0 - 1:t0].expand(-1, real.shape[1] - t0, -1, -1, -1)], 1)
-    candidates = {**{key: videos[key] for key in ("tokenized", "model", "floor")}, "held": held}
-    metrics, networks = list(settings.metrics), feature_metrics(settings, FIDELITY_SETTINGS)
-    return {"metrics": metrics, "rows": {key: score(metrics, real, video, t0, networks)
-                                         for key, video in candidates.items()}}
+    re-simulations), with the metrics of `controllability.fidelity` (issue 49 item 4)."""
+    candidates = {**{key: videos[key] for key in ("tokenized", "model", "floor")},
+                  "held": held_frame(videos["ceiling"], t0)}
+    return fidelity_table(settings, FIDELITY_SETTINGS, videos["ceiling"], candidates, t0)
 
 
 def check_fidelity(settings: DictConfig) -> None:
@@ -425,15 +421,8 @@ def markdown(results: dict[str, Any]) -> str:
 
 def fidelity_markdown(fidelity: dict[str, Any]) -> list[str]:
     """The fidelity table: each row's futures against the real continuations under the same commands."""
-    metrics = fidelity["metrics"]
-    arrows = {"psnr": "↑", "ssim": "↑", "lpips": "↓", "fvmd": "↓", "fid": "↓", "fdd": "↓"}
-    lines = ["", "Fidelity against the real continuations under the same commands (per generated frame; fvmd, fid, "
-             "fdd between the sets of clips):", "",
-             "| futures vs real continuations | " + " | ".join(f"{m} {arrows[m]}" for m in metrics) + " |",
-             "|---" * (len(metrics) + 1) + "|"]
-    lines += [f"| {FIDELITY_ROWS[key]} | " + " | ".join(f"{row[m]:.3f}" for m in metrics) + " |"
-              for key, row in fidelity["rows"].items()]
-    return lines
+    return ["", "Fidelity against the real continuations under the same commands (per generated frame; fvmd, fid, "
+            "fdd between the sets of clips):", "", *table_markdown(fidelity, FIDELITY_ROWS)]
 
 
 def action_rows_markdown(actions: dict[str, Any], names: dict[str, str]) -> list[str]:

@@ -32,7 +32,7 @@ from gaia_app.eval.controllability import probe_clips
 from gaia_app.models.probes import AgentSegmentationProbe
 from gaia_app.pipelines.gaia1_inputs import future_frames
 from gaia_app.protocols.controllability import rollout_frames, world_samples
-from gaia_app.protocols.fidelity import check_metrics, feature_metrics, score
+from gaia_app.protocols.fidelity import ARROWS, check_metrics, feature_metrics, held_frame, score
 from gaia_app.protocols.loading import load_pipeline
 from gaia_app.utils.run_dir import atomic_write_text
 
@@ -55,8 +55,7 @@ def agent_probe(cfg: DictConfig, samples: list, height: int, width: int, frames:
 
 def markdown(results: dict[str, Any]) -> str:
     names = list(next(iter(results["rows"].values())))
-    arrows = {"psnr": "↑", "ssim": "↑", "lpips": "↓", "fvmd": "↓", "fid": "↓", "fdd": "↓", "agent_iou": "↑"}
-    lines = ["| rollouts vs real continuations | " + " | ".join(f"{n} {arrows[n]}" for n in names) + " |",
+    lines = ["| rollouts vs real continuations | " + " | ".join(f"{n} {ARROWS[n]}" for n in names) + " |",
              "|---" * (len(names) + 1) + "|"]
     lines += [f"| {row} | " + " | ".join(f"{values[n]:.3f}" for n in names) + " |"
               for row, values in results["rows"].items()]
@@ -82,7 +81,7 @@ def evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     model = rollout_frames(pipeline, real[:, :t0], frames, n, None, None, generator)
     tokens = torch.stack([pipeline.encode(clip) for clip in real])
     reconstructed = pipeline.render(tokens, generator)[0]
-    held = torch.cat([real[:, :t0], real[:, t0 - 1 : t0].expand(-1, frames, -1, -1, -1)], dim=1)
+    held = held_frame(real, t0)
     metrics, networks = list(cfg.evaluate.metrics), feature_metrics(cfg.evaluate)
     rows = {name: score(metrics, real, candidate, t0, networks, agents) for name, candidate in (
         ("model (video rollouts)", model), ("tokens (real continuation, tokenized and rendered)", reconstructed),

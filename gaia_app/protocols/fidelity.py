@@ -78,3 +78,29 @@ def score(metrics: Sequence[str], real: torch.Tensor, candidate: torch.Tensor, t
     if agents is not None:
         out["agent_iou"] = agent_iou(agents[0], candidate[:, t0:], agents[1][:, t0:])
     return out
+
+
+ARROWS = {"psnr": "↑", "ssim": "↑", "lpips": "↓", "fvmd": "↓", "fid": "↓", "fdd": "↓", "agent_iou": "↑"}
+
+
+def held_frame(real: torch.Tensor, t0: int) -> torch.Tensor:
+    """Clips (b, T, 3, H, W) whose future repeats the last context frame t0 − 1: a future that never moves."""
+    return torch.cat([real[:, :t0], real[:, t0 - 1:t0].expand(-1, real.shape[1] - t0, -1, -1, -1)], 1)
+
+
+def fidelity_table(settings: Any, where: str, real: torch.Tensor, candidates: dict[str, torch.Tensor],
+                   t0: int) -> dict[str, Any]:
+    """{metrics, rows: {name: scores}}: each candidate (b, T, 3, H, W) against the real clips, with the metrics of
+    the settings node at `where` (networks loaded once for every row)."""
+    metrics, networks = list(settings.metrics), feature_metrics(settings, where)
+    return {"metrics": metrics, "rows": {name: score(metrics, real, video, t0, networks)
+                                         for name, video in candidates.items()}}
+
+
+def table_markdown(table: dict[str, Any], names: dict[str, str]) -> list[str]:
+    """A `fidelity_table` as markdown lines, rows labelled by `names` (key → label)."""
+    metrics = table["metrics"]
+    lines = ["| futures vs real continuations | " + " | ".join(f"{m} {ARROWS[m]}" for m in metrics) + " |",
+             "|---" * (len(metrics) + 1) + "|"]
+    return lines + [f"| {names[key]} | " + " | ".join(f"{row[m]:.3f}" for m in metrics) + " |"
+                    for key, row in table["rows"].items()]

@@ -60,7 +60,7 @@ from gaia_app.pipelines.gaia2 import Gaia2Pipeline
 from gaia_app.pipelines.gaia2_edits import cut_steps
 from gaia_app.pipelines.gaia2_world_model import Guidance
 from gaia_app.protocols import gaia2_actions
-from gaia_app.protocols.fidelity import check_metrics, feature_metrics, score
+from gaia_app.protocols.fidelity import check_metrics, feature_metrics, held_frame, score
 from gaia_app.protocols.loading import load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
 
@@ -233,8 +233,7 @@ def fidelity_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[
         model.append(pipeline.decode(x)[0].cpu())
         tokenized.append(pipeline.decode(latents)[0].cpu())
     real_clips, mask_clips = torch.cat(real), torch.cat(masks)  # (N·v, T, 3, H, W), (N·v, T, H, W)
-    held = torch.cat([real_clips[:, :first],
-                      real_clips[:, first - 1 : first].expand(-1, frames - first, -1, -1, -1)], 1)
+    held = held_frame(real_clips, first)
     metrics, networks = list(cfg.evaluate.metrics), feature_metrics(cfg.evaluate)
     agents = (probe, mask_clips) if "agent_iou" in metrics else None
     candidates = {"model (rollouts)": torch.cat(model), "tokenized real (ceiling)": torch.cat(tokenized),
