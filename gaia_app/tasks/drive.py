@@ -9,13 +9,15 @@ The controller sees only the generated frames. After every step the shipped inve
 controllability table measures with) reads the ego speed from the last pair of frames. Its readings are noisy
 (about ±2.5 m/s from step to step on the shipped weights), so they are not used as the state directly: a Kalman
 filter (`SpeedFilter`) predicts the speed by adding each change of the speed command (a model of the plant: the
-world model drives what it is told to), then corrects the prediction by the reading with a gain that settles
-near 0.1 (`--process-noise`, `--probe-noise`). An integral controller (`SpeedKeeper`) moves the speed command by
+world model drives what it is told to), then corrects the prediction by the reading with a gain that settles near
+0.1 (`--process-noise`, `--probe-noise`). An integral controller (`SpeedKeeper`) moves the speed command by
 `--gain` × (target − estimate) per step, at most `--max-accel` m/s² (the world model was trained on changes of
-about 0.4 m/s per step); the curvature command holds `--curvature`. `--controller` picks another policy for
-comparison: `previous` (the proportional law on the raw probe reading this module used before), `open-loop`
-(the same integral law on the commands alone: a ramp to the target, the probe ignored) or `none` (the context's
-speed held). `--seeds` runs every policy on several sampler seeds side by side (tasks/drive_seeds.py).
+about 0.4 m/s per step); the curvature command holds `--curvature`. The world model renders each step with
+classifier-free guidance ×`--guidance` (1.5, the shipped protocol's scale) on the actions (GAIA-1 §5.1): unguided,
+its speed follows the command too weakly for the loop to hold a target (docs/simulator.md). `--controller` picks
+another policy for comparison: `previous` (the proportional law on the raw probe reading this module used before),
+`open-loop` (the same integral law on the commands alone: a ramp to the target, the probe ignored) or `none` (the
+context's speed held). `--seeds` runs every policy on several sampler seeds side by side (tasks/drive_seeds.py).
 
 Frames, the estimated and commanded speed, the trajectory (speed and curvature integrated at the world model's
 rate) go to Rerun: always drive.rrd in --out and, with --viewer, live to a viewer this command starts on
@@ -180,9 +182,11 @@ def drive_blueprint() -> rrb.Blueprint:
 
 
 def drive(env: DrivingSimulator, probe: torch.nn.Module, rec: rr.RecordingStream | None, steps: int,
-          keeper: SpeedKeeper, curvature: float, seed: int, progress: bool = True) -> dict[str, Any]:
-    """Run one closed-loop episode (logged to `rec` unless None); returns its per-step record."""
-    frame, info = env.reset(seed=seed)
+          keeper: SpeedKeeper, curvature: float, seed: int, progress: bool = True,
+          options: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Run one closed-loop episode (logged to `rec` unless None); returns its per-step record. options: the
+    simulator's reset options (`episode_options`: context clip, guidance scale), None for its defaults."""
+    frame, info = env.reset(seed=seed, options=options)
     dt = 1.0 / env.pipeline.rate
     keeper.start(float(env.actions[-1][0]))
     pose, trail, record = np.zeros(3), [np.zeros(3)], []
@@ -203,6 +207,7 @@ def drive(env: DrivingSimulator, probe: torch.nn.Module, rec: rr.RecordingStream
         if truncated:
             break
     return {"steps": record, "target_speed": keeper.target, "controller": keeper.controller, "seed": seed,
+            "context": {k: v for k, v in (options or {}).items() if k in ("world_seed", "index")},
             **speed_errors(record, keeper.target), "final_pose": pose.tolist()}
 
 
@@ -229,9 +234,19 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--max-accel", type=float, default=3.0, help="m/s² at most between commands")
     parser.add_argument("--process-noise", type=float, default=0.3, help="filter: m/s per step the world drifts")
     parser.add_argument("--probe-noise", type=float, default=2.5, help="filter: m/s std of one probe reading")
+    parser.add_argument("--guidance", type=float, default=1.5,
+                        help="classifier-free guidance scale on the actions (GAIA-1 §5.1; 1.5: the scale the shipped "
+                             "weights' controllability is measured with; 0: unguided, the conditional "
+                             "stream alone at half the cost per step)")
+    parser.add_argument("--world-seed", type=int, default=1000, help="the synthetic world of the context clip")
+    parser.add_argument("--clip", type=int, default=0, help="the context clip's index in that world")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--seeds", help="evaluate every controller side by side on these sampler seeds, e.g. "
                         "101-116 or 1,2,3 (tasks/drive_seeds.py); no recording")
+    parser.add_argument("--clips", help="with --seeds: the context clips, the k-th seed's episodes start from the "
+                                         "k-th (cycled), e.g. 0-7 (default: --clip for every seed)")
+    parser.add_argument("--controllers", help="with --seeds: the controllers to compare, e.g. filtered,none "
+                                              "(default: all; none, the baseline, must be among them)")
     parser.add_argument("--out", type=Path, default=Path("outputs/drive"))
     parser.add_argument("--viewer", action="store_true", help="stream live to a Rerun viewer on 127.0.0.1")
     parser.add_argument("--viewer-port", type=int, default=9876)
@@ -240,17 +255,45 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     for name in ("seconds", "max_accel", "process_noise", "probe_noise"):
         if not math.isfinite(getattr(args, name)) or getattr(args, name) <= 0:
             parser.error(f"--{name.replace('_', '-')}={getattr(args, name)}: expected a finite number > 0")
+    if not math.isfinite(args.guidance) or args.guidance < 0:
+        parser.error(f"--guidance={args.guidance}: expected a finite scale >= 0")
+    for name in ("world_seed", "clip"):
+        if getattr(args, name) < 0:
+            parser.error(f"--{name.replace('_', '-')}={getattr(args, name)}: expected an integer >= 0")
     if not 0 <= args.gain <= 1:
         parser.error(f"--gain={args.gain}: expected a share in [0, 1]")
     if not 0 <= args.target_speed <= 70:
         parser.error(f"--target-speed={args.target_speed}: expected m/s in [0, 70] (the simulator's speed range)")
+    check_seed_options(parser, args)
     return args
+
+
+def check_seed_options(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """--seeds, --clips and --controllers are read before any weights load; --clips/--controllers need --seeds."""
+    from gaia_app.tasks.drive_seeds import parse_controllers, parse_seeds  # it imports this module
+
+    if args.seeds is None and (args.clips is not None or args.controllers is not None):
+        parser.error("--clips and --controllers compare controllers over seeds: give --seeds too")
+    try:
+        if args.seeds is not None:
+            parse_seeds(args.seeds), parse_controllers(args.controllers)
+        if args.clips is not None:
+            parse_seeds(args.clips, "--clips")
+    except ValueError as error:
+        parser.error(str(error))
 
 
 def make_keeper(args: argparse.Namespace, rate: float, controller: str | None = None) -> SpeedKeeper:
     """The speed controller the arguments describe (`controller` overrides --controller)."""
     return SpeedKeeper(args.target_speed, args.gain, args.max_accel / rate, controller or args.controller,
                        SpeedFilter(args.process_noise, args.probe_noise))
+
+
+def episode_options(args: argparse.Namespace, clip: int | None = None) -> dict[str, Any]:
+    """The simulator's reset options: clip `clip` (default --clip) of the synthetic world --world-seed as context,
+    the actions guided at --guidance."""
+    return {"context": "synthetic", "world_seed": args.world_seed, "index": args.clip if clip is None else clip,
+            "guidance": args.guidance}
 
 
 def load_world(weights: str) -> tuple[Gaia1Pipeline, torch.nn.Module]:
@@ -300,7 +343,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         return evaluate_seeds(args, env, probe, steps)
     rec, headless = open_recording(args)
     try:
-        results = drive(env, probe, rec, steps, make_keeper(args, pipeline.rate), args.curvature, args.seed)
+        results = drive(env, probe, rec, steps, make_keeper(args, pipeline.rate), args.curvature, args.seed,
+                        options=episode_options(args))
         try:
             rec.flush()
         except RuntimeError as error:  # a live viewer that went away: the episode and drive.json still count

@@ -1,10 +1,13 @@
 """Every speed controller of the closed loop on several sampler seeds, side by side (docs/simulator.md).
 
-    python -m gaia_app.tasks.drive --weights gaia1 --seconds 10 --target-speed 12 --seeds 101-116 \\
+    python -m gaia_app.tasks.drive --weights gaia1 --seconds 10 --target-speed 12 --seeds 201-216 \\
         --out outputs/drive_seeds
+    # other contexts: the k-th seed starts from the k-th clip of --clips (cycled) of world --world-seed
+    python -m gaia_app.tasks.drive --seeds 301-308 --world-seed 5151 --clips 0-7 --controllers filtered,none
 
-For each seed, one episode per controller of `drive.CONTROLLERS` from the same context (clip 0 of world 1000) and
-the same sampler seed, so the controllers are compared on paired episodes. Scores over the last 5 s of each
+For each seed, one episode per controller of `drive.CONTROLLERS` (or of `--controllers`, which must hold "none")
+from the same context (clip --clip of world --world-seed, or the seed's clip of --clips) and the same sampler
+seed, so the controllers are compared on paired episodes. Scores over the last 5 s of each
 episode: the mean |probed − target| speed (the score), |mean probed − target| (the offset a controller can
 remove), mean |command − target|. Each controller's mean over seeds gets a 95 % percentile bootstrap interval
 over seeds, and so does its paired ratio Σ error / Σ error of "none" (the context's speed held). A generated world
@@ -23,25 +26,34 @@ import torch
 
 from gaia_app.eval.intervals import Estimate, ratio_interval
 from gaia_app.pipelines.simulator import DrivingSimulator
-from gaia_app.tasks.drive import CONTROLLERS, drive, make_keeper
+from gaia_app.tasks.drive import CONTROLLERS, drive, episode_options, make_keeper
 from gaia_app.utils.run_dir import atomic_write_text
 
 SCORES = ("probed_speed_error", "probed_mean_offset", "command_error")
 BASELINE = "none"
 
 
-def parse_seeds(text: str) -> list[int]:
-    """"101-116" or "1,2,3" (or both: "1-3,7") → the seeds, each an integer ≥ 0; ValueError naming --seeds."""
+def parse_seeds(text: str, option: str = "--seeds") -> list[int]:
+    """"101-116" or "1,2,3" (or both: "1-3,7") → the seeds (or clips), each an integer ≥ 0; ValueError naming
+    `option`."""
     seeds: list[int] = []
     try:
         for part in text.split(","):
             low, _, high = part.strip().partition("-")
             seeds += list(range(int(low), int(high or low) + 1))
     except ValueError:
-        raise ValueError(f"--seeds={text!r}: expected integers and ranges such as 101-116 or 1,2,3") from None
+        raise ValueError(f"{option}={text!r}: expected integers and ranges such as 101-116 or 1,2,3") from None
     if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
-        raise ValueError(f"--seeds={text!r}: expected distinct integers ≥ 0")
+        raise ValueError(f"{option}={text!r}: expected distinct integers ≥ 0")
     return seeds
+
+
+def parse_controllers(text: str | None) -> list[str]:
+    """"filtered,none" → those controllers (None: all of CONTROLLERS); the baseline "none" must be among them."""
+    names = list(CONTROLLERS) if text is None else [n.strip() for n in text.split(",")]
+    if any(n not in CONTROLLERS for n in names) or BASELINE not in names or len(set(names)) != len(names):
+        raise ValueError(f"--controllers={text!r}: expected distinct names among {CONTROLLERS}, {BASELINE!r} included")
+    return names
 
 
 def mean_estimate(values: list[float]) -> Estimate:
@@ -76,21 +88,26 @@ def table(rows: dict[str, dict[str, Any]]) -> str:
 def evaluate_seeds(args: argparse.Namespace, env: DrivingSimulator, probe: torch.nn.Module,
                    steps: int) -> dict[str, Any]:
     """Run every controller on every seed of --seeds; write drive_seeds.json in --out; return its content."""
-    seeds = parse_seeds(args.seeds)
-    runs: dict[str, list[dict[str, Any]]] = {name: [] for name in CONTROLLERS}
+    seeds, controllers = parse_seeds(args.seeds), parse_controllers(args.controllers)
+    clips = [args.clip] if args.clips is None else parse_seeds(args.clips, "--clips")
+    runs: dict[str, list[dict[str, Any]]] = {name: [] for name in controllers}
     start = time.perf_counter()
-    for seed in seeds:
-        for name in CONTROLLERS:
+    for k, seed in enumerate(seeds):
+        options = episode_options(args, clips[k % len(clips)])
+        for name in controllers:
             keeper = make_keeper(args, env.pipeline.rate, name)
-            runs[name].append(drive(env, probe, None, steps, keeper, args.curvature, seed, progress=False))
-        print(f"seed {seed}: " + ", ".join(f"{n} {runs[n][-1]['probed_speed_error']:.2f}" for n in CONTROLLERS)
+            runs[name].append(drive(env, probe, None, steps, keeper, args.curvature, seed, progress=False,
+                                    options=options))
+        print(f"seed {seed}, clip {options['index']}: "
+              + ", ".join(f"{n} {runs[n][-1]['probed_speed_error']:.2f}" for n in controllers)
               + f" m/s ({time.perf_counter() - start:.0f} s)", flush=True)
     rows = summary(runs)
     result = {"seeds": seeds, "target_speed": args.target_speed, "seconds": args.seconds,
               "settings": {k: getattr(args, k) for k in ("gain", "max_accel", "process_noise", "probe_noise",
-                                                            "curvature", "weights")},
+                                                            "curvature", "weights", "guidance", "world_seed")},
+              "clips": clips,
               "threads": torch.get_num_threads(), "summary": rows,
-              "per_seed": {name: [{k: e[k] for k in ("seed", *SCORES)} for e in episodes]
+              "per_seed": {name: [{k: e[k] for k in ("seed", "context", *SCORES)} for e in episodes]
                            for name, episodes in runs.items()},
               "wall_s": time.perf_counter() - start}
     atomic_write_text(args.out / "drive_seeds.json", json.dumps(result, indent=2))
