@@ -8,7 +8,7 @@ CONSTRAINTS := requirements/constraints.txt
 DEMO_DIR := outputs/demo
 PYTEST_ARGS ?=
 
-.PHONY: demo demo-train test lint install install-dev benchmarks clean reproduce
+.PHONY: demo demo-train test test-slow test-all lint install install-dev benchmarks clean reproduce
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -102,10 +102,18 @@ reproduce: install
 
 # lint first (ruff, [tool.ruff] in pyproject.toml: a lint error fails the target before any test runs), then one
 # pytest-xdist worker per logical CPU (TEST_WORKERS=0 runs in one process); --dist loadscope keeps each test module
-# on one worker, so module-scoped fixtures (trained tiny models) are built once
+# on one worker, so module-scoped fixtures (trained tiny models) are built once.
+# `make test` leaves out the tests marked slow (multi-process DDP/FSDP2/DeepSpeed runs, paper-size presets, the
+# commaVQ learning run, the closed-loop pin; every line they reach is also reached by the quick tier, see
+# docs/benchmarks.md); `make test-slow` runs those, `make test-all` both. CI runs both.
 TEST_WORKERS ?= logical
 test: install-dev lint
-	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadscope $(PYTEST_ARGS)
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadscope -m "not slow" $(PYTEST_ARGS)
+
+test-slow: install-dev
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadscope -m slow $(PYTEST_ARGS)
+
+test-all: test test-slow
 
 lint: install-dev
 	$(VENV)/bin/ruff check .

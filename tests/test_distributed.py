@@ -68,6 +68,7 @@ def logits_of(module) -> torch.Tensor:
         return module.world_model(tokens, module.conditions({"tokens": tokens, "actions": torch.zeros(2, 4, 2)}))
 
 
+@pytest.mark.slow
 def test_ddp_two_cpu_processes_share_one_run_dir(token_cache: Path, tmp_path: Path) -> None:
     done = run_train([*world_model_args(token_cache, tmp_path), "trainer=ddp", "trainer.precision=32-true"])
     log = done.stdout + done.stderr
@@ -80,6 +81,7 @@ def test_ddp_two_cpu_processes_share_one_run_dir(token_cache: Path, tmp_path: Pa
     assert torch.isfinite(logits_of(module)).all()
 
 
+@pytest.mark.slow
 def test_fsdp2_shards_on_two_cpu_processes_and_loads_on_one(token_cache: Path, tmp_path: Path) -> None:
     done = run_train([*world_model_args(token_cache, tmp_path), "trainer=fsdp2",
                       "trainer.strategy.activation_checkpointing=true"])
@@ -171,6 +173,7 @@ def stale_parameters(ckpt: Path, module, tmp_path: Path) -> list[str]:
             if p.requires_grad and (name not in state or not state[name]["exp_avg"].abs().sum() > 0)]
 
 
+@pytest.mark.slow
 def test_deepspeed_zero2_step_on_cpu(tmp_path: Path) -> None:
     """A raw `deepspeed.initialize` ZeRO-2 run of the tiny world model (Lightning's DeepSpeedStrategy is CUDA-only)."""
     pytest.importorskip("deepspeed")

@@ -40,7 +40,7 @@ from gaia_app.pipelines.gaia2 import Gaia2Pipeline
 from gaia_app.pipelines.gaia2_edits import with_added_agents
 from tests.conftest import compose_config
 
-pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.slow]
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 WEIGHTS = Path(gaia_app.__file__).resolve().parent / "weights"
 SOURCE_FPS = 25.0  # the synthetic world's own rate

@@ -19,6 +19,8 @@ from gaia_app.data.shards import TokenShardDataModule
 from tests.data.test_shards import SEQ, STRIDE, token_cache, window_ids
 from tests.test_distributed import run_train, world_model_args
 
+pytestmark = pytest.mark.slow  # two processes each: `make test-slow`
+
 
 def free_port() -> int:
     with socket.socket() as s:

@@ -17,6 +17,7 @@ def windows(dataset) -> torch.Tensor:
     return torch.stack([dataset[i]["tokens"] for i in range(len(dataset))])
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_tiny_world_model_beats_unigram_and_copy_previous(shared_data: Path, tmp_path: Path) -> None:
     """A shortened world_model_commavq run (150 of its 400 steps, ≈ 1 min on 2 cores)."""

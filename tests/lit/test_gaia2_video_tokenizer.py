@@ -125,6 +125,27 @@ def test_dinov2_distillation_of_the_latents(tmp_path: Path) -> None:
     assert all(k.startswith("net.") for k in module.state_dict())  # the teacher stays out of the checkpoint
 
 
+def test_perceptual_term_compares_every_frame(tmp_path: Path) -> None:
+    """With a (small, random) VGG16-layout perceptual network the reconstruction terms get a perceptual term, frame
+    by frame over every camera, that is zero for a perfect reconstruction."""
+    from types import SimpleNamespace
+
+    from gaia_app.encoders import load_perceptual
+    from gaia_app.nn.vgg import VGG16Features
+
+    torch.manual_seed(0)
+    torch.save(VGG16Features(base_width=4).state_dict(), tmp_path / "vgg16.pth")
+    module = make_module(perceptual=functools.partial(load_perceptual, checkpoint=tmp_path / "vgg16.pth",
+                                                      base_width=4))
+    module.load_frozen_networks()  # what fit's setup does
+    video = FixedClips().clips[:1]  # (1, v, T, 3, 32, 64)
+    noisy = SimpleNamespace(reconstruction=video + 0.3 * torch.randn_like(video))
+    terms = module.reconstruction_terms(video, noisy)
+    assert terms["perceptual"] > 0 and {"l1", "l2"} <= set(terms)
+    exact = module.reconstruction_terms(video, SimpleNamespace(reconstruction=video.clone()))
+    assert float(exact["perceptual"]) == pytest.approx(0.0, abs=1e-6)
+
+
 def test_step_frames_are_the_middle_frame_of_each_latent_step() -> None:
     module = make_module()
     clip = torch.arange(8.0).view(1, 1, 8, 1, 1, 1).expand(1, 1, 8, 3, 2, 2)

@@ -213,3 +213,21 @@ def test_fresh_action_raster_starts_with_no_effect() -> None:
     keep = fresh.conditioner.keep_masks(1, x.device)
     cond = conditions()
     torch.testing.assert_close(fresh.embed(x, cond, keep), fresh.embed(x, cond.without("action"), keep))
+
+
+def test_activation_checkpointing_in_training_gives_the_same_output_and_gradients() -> None:
+    """checkpointing=True recomputes each block in the backward pass (the paper-size runs need it): in training
+    mode, with the condition dropout's random draws repeated, output and gradients equal the plain model's."""
+    x, tau = latents()
+    results = []
+    for checkpointing in (False, True):
+        net = model(checkpointing=checkpointing).train()
+        torch.manual_seed(3)
+        out = net(x, tau, conditions())
+        out.square().mean().backward()
+        results.append((out.detach(), [p.grad.clone() for p in net.parameters() if p.grad is not None]))
+    (plain, plain_grads), (checked, checked_grads) = results
+    torch.testing.assert_close(checked, plain)
+    assert len(plain_grads) == len(checked_grads) > 0
+    for a, b in zip(plain_grads, checked_grads):
+        torch.testing.assert_close(a, b)

@@ -185,6 +185,18 @@ def test_flatten_params_dict_dictconfig_namespace():
     assert flatten_params(None) == {}
 
 
+def test_the_logger_pickles_without_its_stream(tmp_path):
+    """ddp_spawn ships the logger to its child processes: it pickles without the recording stream, and the copy
+    keeps its settings (the two-process run itself is in the slow tier)."""
+    import pickle
+
+    logger = RerunLogger(str(tmp_path), version="v1")
+    logger.log_metrics({"train/loss": 1.0}, step=0)  # opens the stream
+    assert logger._rec is not None
+    copy = pickle.loads(pickle.dumps(logger))
+    assert copy._rec is None and copy.save_dir == logger.save_dir and copy.version == logger.version
+
+
 def test_config_text_and_continuation(tmp_path):
     """log_config / log_text land in the file; reuse after finalize continues in run.1.rrd."""
     logger = RerunLogger(str(tmp_path), version="v1")
