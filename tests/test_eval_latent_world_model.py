@@ -103,11 +103,13 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
                           "fidelity", "--out", str(tmp_path / "out"), "evaluate.metrics=[psnr,fvmd]",
                           "model.evaluate.contexts=1", "model.evaluate.noise_draws=2",
                           "model.evaluate.probe_clips=2", "model.evaluate.probe_steps=2", "model.sampler.steps=2",
-                          "model.guidance.conditions=[action]"])
+                          "model.guidance.conditions=[action]", "model.steps=3"])
     tables = result["tables"]
     assert len(tables) == 6
     original, copied = tables["gaia2, guidance ×0"], tables[f"{copy}, guidance ×0"]
-    assert original["probe_stride"] == 2 and original["scored_steps"] == 6 and original["noise_draws"] == 2
+    # model.steps=3: two context steps and one generated latent step, so 2 scored frame pairs (the shipped config
+    # generates 2 steps in chunks; chunked rollouts are tested in tests/test_gaia2_generate.py)
+    assert original["probe_stride"] == 2 and original["scored_steps"] == 2 and original["noise_draws"] == 2
     assert original["rows"]["model"]["draws"] == 2 and original["rows"]["ceiling"]["draws"] == 1
     for name in ("ceiling", "model", "floor"):
         assert original["rows"][name]["curvature_contrast"] == copied["rows"][name]["curvature_contrast"]
@@ -151,7 +153,7 @@ def test_gaia2_agent_guidance_splits_iou_inside_and_outside_the_boxes(tmp_path) 
     boxes and the agent share outside them for every row, the guided rows paired to plain CFG; refuses scale 0."""
     module = load_benchmark("gaia2_agent_guidance")
     tiny = ["model.evaluate.contexts=2", "model.evaluate.probe_clips=2", "model.evaluate.probe_steps=2",
-            "model.sampler.steps=2"]
+            "model.sampler.steps=2", "model.steps=3"]
     result = module.main(["--out", str(tmp_path), *tiny])
     rows = result["agents"]["rows"]
     assert len(rows) == 8 and result["cameras"] == ["front", "front_left", "front_right"]
