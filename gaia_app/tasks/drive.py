@@ -276,7 +276,8 @@ def check_seed_options(parser: argparse.ArgumentParser, args: argparse.Namespace
         parser.error("--clips and --controllers compare controllers over seeds: give --seeds too")
     try:
         if args.seeds is not None:
-            parse_seeds(args.seeds), parse_controllers(args.controllers)
+            parse_seeds(args.seeds)
+            parse_controllers(args.controllers)
         if args.clips is not None:
             parse_seeds(args.clips, "--clips")
     except ValueError as error:
