@@ -255,8 +255,7 @@ def test_the_seed_evaluation_pairs_every_controller(tmp_path) -> None:
     held speed's error with bootstrap intervals, in drive_seeds.json."""
     import json
 
-    from gaia_app.tasks.drive import CONTROLLERS, main
-    from gaia_app.tasks.drive_seeds import parse_seeds
+    from gaia_app.tasks.drive import CONTROLLERS, main, parse_seeds
 
     assert parse_seeds("101-103,7") == [101, 102, 103, 7]
     for bad in ("a-b", "3,3", "-1", ""):

@@ -67,6 +67,7 @@ def estimated_speed(probe: torch.nn.Module, previous: np.ndarray, frame: np.ndar
 
 
 CONTROLLERS = ("filtered", "previous", "open-loop", "none")
+BASELINE = "none"  # the uncontrolled policy every --seeds comparison is scored against
 
 
 @dataclass
@@ -264,22 +265,43 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         parser.error(f"--gain={args.gain}: expected a share in [0, 1]")
     if not 0 <= args.target_speed <= 70:
         parser.error(f"--target-speed={args.target_speed}: expected m/s in [0, 70] (the simulator's speed range)")
-    check_seed_options(parser, args)
+    read_seed_options(parser, args)
     return args
 
 
-def check_seed_options(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """--seeds, --clips and --controllers are read before any weights load; --clips/--controllers need --seeds."""
-    from gaia_app.tasks.drive_seeds import parse_controllers, parse_seeds  # it imports this module
+def parse_seeds(text: str, option: str = "--seeds") -> list[int]:
+    """"101-116" or "1,2,3" (or both: "1-3,7") → the seeds (or clips), each an integer ≥ 0; ValueError naming
+    `option`."""
+    seeds: list[int] = []
+    try:
+        for part in text.split(","):
+            low, _, high = part.strip().partition("-")
+            seeds += list(range(int(low), int(high or low) + 1))
+    except ValueError:
+        raise ValueError(f"{option}={text!r}: expected integers and ranges such as 101-116 or 1,2,3") from None
+    if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
+        raise ValueError(f"{option}={text!r}: expected distinct integers ≥ 0")
+    return seeds
 
+
+def parse_controllers(text: str | None) -> list[str]:
+    """"filtered,none" → those controllers (None: all of CONTROLLERS); the baseline "none" must be among them."""
+    names = list(CONTROLLERS) if text is None else [n.strip() for n in text.split(",")]
+    if any(n not in CONTROLLERS for n in names) or BASELINE not in names or len(set(names)) != len(names):
+        raise ValueError(f"--controllers={text!r}: expected distinct names among {CONTROLLERS}, {BASELINE!r} included")
+    return names
+
+
+def read_seed_options(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """--seeds, --clips and --controllers → lists on `args` (--controllers: all when not given), read before any
+    weights load; --clips/--controllers need --seeds."""
     if args.seeds is None and (args.clips is not None or args.controllers is not None):
         parser.error("--clips and --controllers compare controllers over seeds: give --seeds too")
     try:
         if args.seeds is not None:
-            parse_seeds(args.seeds)
-            parse_controllers(args.controllers)
+            args.seeds, args.controllers = parse_seeds(args.seeds), parse_controllers(args.controllers)
         if args.clips is not None:
-            parse_seeds(args.clips, "--clips")
+            args.clips = parse_seeds(args.clips, "--clips")
     except ValueError as error:
         parser.error(str(error))
 

@@ -26,36 +26,10 @@ import torch
 
 from gaia_app.eval.intervals import Estimate, ratio_interval
 from gaia_app.pipelines.simulator import DrivingSimulator
-from gaia_app.tasks.drive import CONTROLLERS, drive, episode_options, make_keeper
+from gaia_app.tasks.drive import BASELINE, drive, episode_options, make_keeper
 from gaia_app.utils.run_dir import atomic_write_text
 
 SCORES = ("probed_speed_error", "probed_mean_offset", "command_error")
-BASELINE = "none"
-
-
-def parse_seeds(text: str, option: str = "--seeds") -> list[int]:
-    """"101-116" or "1,2,3" (or both: "1-3,7") → the seeds (or clips), each an integer ≥ 0; ValueError naming
-    `option`."""
-    seeds: list[int] = []
-    try:
-        for part in text.split(","):
-            low, _, high = part.strip().partition("-")
-            seeds += list(range(int(low), int(high or low) + 1))
-    except ValueError:
-        raise ValueError(f"{option}={text!r}: expected integers and ranges such as 101-116 or 1,2,3") from None
-    if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
-        raise ValueError(f"{option}={text!r}: expected distinct integers ≥ 0")
-    return seeds
-
-
-def parse_controllers(text: str | None) -> list[str]:
-    """"filtered,none" → those controllers (None: all of CONTROLLERS); the baseline "none" must be among them."""
-    names = list(CONTROLLERS) if text is None else [n.strip() for n in text.split(",")]
-    if any(n not in CONTROLLERS for n in names) or BASELINE not in names or len(set(names)) != len(names):
-        raise ValueError(f"--controllers={text!r}: expected distinct names among {CONTROLLERS}, {BASELINE!r} included")
-    return names
-
-
 def mean_estimate(values: list[float]) -> Estimate:
     """The mean over seeds with its 95 % percentile bootstrap interval."""
     return ratio_interval(values, [1.0] * len(values))
@@ -87,9 +61,10 @@ def table(rows: dict[str, dict[str, Any]]) -> str:
 
 def evaluate_seeds(args: argparse.Namespace, env: DrivingSimulator, probe: torch.nn.Module,
                    steps: int) -> dict[str, Any]:
-    """Run every controller on every seed of --seeds; write drive_seeds.json in --out; return its content."""
-    seeds, controllers = parse_seeds(args.seeds), parse_controllers(args.controllers)
-    clips = [args.clip] if args.clips is None else parse_seeds(args.clips, "--clips")
+    """Run every controller of --controllers on every seed of --seeds (lists, as parse_args leaves them); write
+    drive_seeds.json in --out; return its content."""
+    seeds, controllers = args.seeds, args.controllers
+    clips = [args.clip] if args.clips is None else args.clips
     runs: dict[str, list[dict[str, Any]]] = {name: [] for name in controllers}
     start = time.perf_counter()
     for k, seed in enumerate(seeds):
