@@ -105,12 +105,12 @@ def adherence(folders: list[str], overrides: list[str], scales: list[float] | No
     started = time.perf_counter()
     probe, fit = gaia2_actions.train_action_probe(cfg, frames) if "actions" in tables else (None, None)
     samples = rig_samples(cfg, cfg.context.seed, cfg.model.evaluate.contexts, frames)
-    actions, fidelities = {}, {}
+    actions, fidelities, ceilings = {}, {}, {}  # the real continuations are rendered once for every variant
     for name, pipeline in pipelines.items():
         scenes = [(s, cut_steps(pipeline.encode(s.clip), cfg.model.steps)) for s in samples]
         generator = torch.Generator().manual_seed(int(cfg.seed))  # the same noise for every folder and scale
         if "actions" in tables:
-            actions[name] = gaia2_actions.action_table(cfg, pipeline, scenes, probe, generator)
+            actions[name] = gaia2_actions.action_table(cfg, pipeline, scenes, probe, generator, ceilings)
         if "fidelity" in tables:
             fidelities[name] = fidelity_table(cfg, pipeline, scenes, None, torch.Generator().manual_seed(int(cfg.seed)))
     return {"probe_fit": fit, "seconds": time.perf_counter() - started, "overrides": overrides, "scales": scales,

@@ -21,7 +21,10 @@ SHARED_DATA = ROOT.parent / "shared" / "data"
 
 os.environ.setdefault("RERUN", "on")
 # Under pytest-xdist (`make test` runs one worker per core) each worker keeps to one thread: two workers of two
-# threads each would fight over the cores.
+# threads each would fight over the cores. OMP_NUM_THREADS says so to the runs the tests start too (the thread
+# policy of gaia_app/utils/threads.py reads it instead of counting free CPUs, and subprocesses inherit it).
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
 torch.set_num_threads(1 if os.environ.get("PYTEST_XDIST_WORKER") else 2)
 
 

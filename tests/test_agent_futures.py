@@ -137,9 +137,9 @@ def test_the_benchmark_scores_the_shipped_weights_and_draws_the_strip(tmp_path: 
     bench = load_benchmark()
     out = tmp_path / "out"
     results = bench.main(["--contexts", "2", "--futures", "2", "--spread-contexts", "2", "--out", str(out),
-                          "--json", str(tmp_path / "r.json")])
+                          "--json", str(tmp_path / "r.json"), "--", "seconds=0.48"])  # 3 future frames
     stored = json.loads((tmp_path / "r.json").read_text())
-    assert stored["contexts"] == 2 and len(stored["clip_indices"]) == 2
+    assert stored["contexts"] == 2 and len(stored["clip_indices"]) == 2 and stored["future_frames"] == 3
     assert set(stored["persistence"]) == {"real", "tokenized", "model"}
     assert set(stored["persistence_where_read_in_real"]) == {"tokenized", "model"}
     assert set(stored["interaction"]) == {"labels", "real", "tokenized", "model"}

@@ -52,9 +52,11 @@ def test_probe_learns_agent_masks_of_the_synthetic_world() -> None:
     world = SyntheticClipDataset(num_clips=14, seed=11, height=64, width=112, clip_len=29)
     frames, masks = agent_clips([world.sample(i) for i in range(14)], rate=6.25, frames=8)
     assert frames.shape == (14, 8, 3, 64, 112) and masks.shape == (14, 8, 64, 112) and 0.02 < masks.float().mean() < 0.5
-    probe, fit = train_agent_probe(frames[:12], masks[:12], steps=150, progress=False)
+    # batches of 8: a third of the time of 16 for the same 150 steps (measured over training seeds 0–3: loss falls
+    # 5.9–7.1×, held-out IoU 0.29–0.48 against 0.27 with batches of 16)
+    probe, fit = train_agent_probe(frames[:12], masks[:12], steps=150, batch=8, progress=False)
     assert fit["last_loss"] < fit["first_loss"] / 3
     held_out = agent_iou(probe, frames[12:], masks[12:])
-    # "agent everywhere" scores the mask coverage (≈ 0.06 here); 12 clips give ≈ 0.27 on unseen clips
+    # "agent everywhere" scores the mask coverage (≈ 0.07 here)
     assert held_out > 3 * float(masks[12:].float().mean()), held_out
     assert held_out > agent_iou(probe, frames[12:].flip(-1), masks[12:])  # mirrored frames, unmirrored masks

@@ -39,7 +39,8 @@ def screenshot_recording(rrd: str | Path, png: str | Path, frame: int | None = N
     """Open `rrd` in a headless viewer with its own blueprint, pause at `frame` on the `frame` timeline (the
     last frame when None), and write the viewer as a PNG (longest side `max_size` px) to `png`, atomically.
 
-    Chunks stream into the viewer on demand, so it waits `settle_s` after seeking before the capture.
+    Chunks stream into the viewer on demand, so after seeking it screenshots until the picture stops changing
+    (at most `2 * settle_s`).
     Raises ViewerUnavailable when no headless viewer can run here, FileNotFoundError for a missing `rrd`.
     """
     rrd = Path(rrd)
@@ -68,12 +69,21 @@ def capture_live(viewer, process, png: str | Path, max_size: int = 1280, settle_
         stop_viewer(process)
 
 
-def _capture(viewer, png: str | Path, max_size: int, settle_s: float) -> Path:
+def _capture(viewer, png: str | Path, max_size: int, settle_s: float, poll_s: float = 0.25,
+             stable_shots: int = 3) -> Path:
+    """Screenshot until `stable_shots` in a row agree (the chunks in view have arrived and been painted), at most
+    `2 * settle_s` after the first paint; then write the last one. The first paint fetches the chunks in view and
+    never counts, so a blank first paint is not taken for a settled one; a viewer that has what it needs settles in
+    about 1.5 s instead of waiting the whole time."""
     try:
-        time.sleep(settle_s)
-        viewer.take_screenshot(max_size=max_size)  # the first paint fetches the chunks in view
-        time.sleep(settle_s)
+        viewer.take_screenshot(max_size=max_size)  # fetches the chunks in view
+        deadline, same = time.monotonic() + 2 * settle_s, 0
+        time.sleep(poll_s)
         shot = viewer.take_screenshot(max_size=max_size)
+        while same < stable_shots - 1 and time.monotonic() < deadline:
+            time.sleep(poll_s)
+            previous, shot = shot, viewer.take_screenshot(max_size=max_size)
+            same = same + 1 if shot == previous else 0
     except ConnectionError as err:  # spawned, then died while painting: no usable Vulkan driver here
         raise _stopped_answering(err) from err
     atomic_write_bytes(png, shot)

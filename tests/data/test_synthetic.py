@@ -178,3 +178,17 @@ def test_render_rate_renders_only_what_resampling_keeps(rate: float) -> None:
 def test_render_rate_outside_the_simulation_rate_is_refused(render_rate: float) -> None:
     with pytest.raises(ValueError, match="render_rate"):
         SyntheticClipDataset(num_clips=1, fps=25.0, render_rate=render_rate)
+
+
+def test_cached_clips_are_the_rendered_clips_and_the_oldest_leaves_first() -> None:
+    cached = SyntheticClipDataset(num_clips=4, seed=3, height=32, width=48, clip_len=2, cache_clips=2)
+    plain = SyntheticClipDataset(num_clips=4, seed=3, height=32, width=48, clip_len=2)
+    first = cached.sample(0)
+    assert cached.sample(0) is first and cached.sample(-4) is first  # read again, not re-rendered
+    np.testing.assert_array_equal(first.clip.frames, plain[0].frames)
+    cached.sample(1), cached.sample(0), cached.sample(2)  # 1 is now the least recently read: it leaves
+    assert list(cached.cached) == [0, 2] and cached.sample(1) is not first
+    assert plain.cached == {} and plain.sample(0) is not plain.sample(0)
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="cache_clips"):
+            SyntheticClipDataset(num_clips=4, cache_clips=bad)

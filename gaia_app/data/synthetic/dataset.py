@@ -7,6 +7,7 @@ workers and the main process return identical clips.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from typing import Any
@@ -43,7 +44,8 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
                  cameras: int | Sequence[str] = ("front",), clip_len: int = 8, fps: float = 25.0,
                  weather_mix: Mapping[str, float] | None = None, time_of_day_mix: Mapping[str, float] | None = None,
                  agent_density: float = 1.0, scenario: Scenario | None = None, driven_share: float = 0.0,
-                 open_loop_acceleration: Sequence[float] = ACCELERATION_RANGE, render_rate: float | None = None):
+                 open_loop_acceleration: Sequence[float] = ACCELERATION_RANGE, render_rate: float | None = None,
+                 cache_clips: int = 0):
         if isinstance(num_clips, bool) or not isinstance(num_clips, (int, np.integer)) or num_clips < 1:
             raise ValueError(f"num_clips: expected a positive integer, got {num_clips!r}")
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -54,7 +56,10 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
             raise ValueError(f"driven_share: expected a share in [0, 1], got {driven_share!r}")
         if driven_share > 0 and scenario is not None and scenario.ego_actions is not None:
             raise ValueError("driven_share > 0 with scenario.ego_actions: the clip's actions are given twice")
+        if isinstance(cache_clips, bool) or not isinstance(cache_clips, (int, np.integer)) or cache_clips < 0:
+            raise ValueError(f"cache_clips: expected a number of clips ≥ 0, got {cache_clips!r}")
         self.num_clips, self.seed, self.scenario = int(num_clips), int(seed), scenario
+        self.cache_clips, self.cached = int(cache_clips), OrderedDict()
         self.driven_share = float(driven_share)
         if render_rate is not None and not (np.isfinite(render_rate) and 0 < render_rate <= fps):
             raise ValueError(f"render_rate: expected a rate in (0, fps = {fps:g}] Hz or None, got {render_rate!r}")
@@ -76,9 +81,18 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
         """Clip `index` with its simulation (for instance masks)."""
         rng = self._rng(int(index))
         i = int(index) % self.num_clips
+        if i in self.cached:
+            self.cached.move_to_end(i)
+            return self.cached[i]
         scenario = self.open_loop_scenario(i)
         meta = {"seed": self.seed, "index": i, **({"open_loop": True} if scenario is not self.scenario else {})}
-        return sample_from_rng(rng, self.config, scenario, f"synthetic-s{self.seed}-{i:06d}", meta, self.render_rate)
+        sample = sample_from_rng(rng, self.config, scenario, f"synthetic-s{self.seed}-{i:06d}", meta,
+                                 self.render_rate)
+        if self.cache_clips:
+            self.cached[i] = sample
+            if len(self.cached) > self.cache_clips:
+                self.cached.popitem(last=False)
+        return sample
 
     def open_loop_scenario(self, index: int) -> Scenario | None:
         """The dataset's scenario, with open-loop ego actions for the `driven_share` of clips that get them."""
