@@ -37,21 +37,14 @@ def sequence(shared_data: Path) -> Path:
     return path
 
 
-def test_pandaset_goes_through_the_whole_gaia2_path(sequence: Path, tmp_path: Path) -> None:
+def test_pandaset_goes_through_the_whole_gaia2_path(sequence: Path, gaia2_tiny: dict[str, Path],
+                                                   tmp_path: Path) -> None:
     clips = tmp_path / "clips"
     clip_dir = import_pandaset(sequence, clips, height=64, width=112, progress=False)
     real = [f"data.source.root={clips}", *REAL]
-
-    # pre-training on the synthetic rig: a video tokenizer, its latent cache and a latent world model
-    train(compose_config("train", ["experiment=gaia2/video_tokenizer_tiny", "data=synthetic_rig_tiny", *TINY],
-                         tmp_path / "tok"))
-    tokenizer = tmp_path / "tok" / "checkpoints" / "last.ckpt"
-    generate(compose_config("generate", ["mode=encode", "data=synthetic_rig_tiny", f"ckpt={tokenizer}",
-                                         f"out_dir={tmp_path / 'synthetic_latents'}", "data.source.clip_len=16",
-                                         "data.source.num_clips=4", "extras.print_config=false"], tmp_path / "enc0"))
-    train(compose_config("train", ["experiment=gaia2/world_model_tiny", f"data.path={tmp_path / 'synthetic_latents'}",
-                                   "data.batch_size=2", *TINY], tmp_path / "wm0"))
-
+    # pre-training on the synthetic rig: the suite's tiny video tokenizer, its latent cache and latent world model
+    # (tests/tiny_checkpoints.py: build_gaia2, the documented commands at 2 steps each)
+    tokenizer, synthetic_world_model = gaia2_tiny["tokenizer"], gaia2_tiny["world_model"]
     # the tokenizer on the real rig: PSNR per camera
     psnr = generate(compose_config("generate", ["mode=reconstruct", f"ckpt={tokenizer}", *real, "num_clips=1",
                                                 "extras.print_config=false"], tmp_path / "rec"))["results"]
@@ -66,7 +59,7 @@ def test_pandaset_goes_through_the_whole_gaia2_path(sequence: Path, tmp_path: Pa
     assert [c.name for c in latent.cameras] == CAMERAS and latent.agents is not None and latent.actions is not None
     train(compose_config("train", ["experiment=gaia2/world_model_tiny", f"data.path={tmp_path / 'latents'}",
                                    "data.batch_size=1",
-                                   f"model.init_from={tmp_path / 'wm0' / 'checkpoints' / 'last.ckpt'}", *TINY],
+                                   f"model.init_from={synthetic_world_model}", *TINY],
                          tmp_path / "wm"))
 
     # a six-camera rollout from the real context, its boxes projected into every camera in the recording

@@ -117,7 +117,7 @@ def test_observations_through_the_video_decoder_at_25_hz(pipeline: Gaia1Pipeline
     """observation='video_decoder': four frames per step (6.25 → 25 Hz), each step's new frame decoded with the
     frames before it as context; decoding has its own noise, so the episode's tokens are those of tokenizer
     observations under the same seed."""
-    with_decoder = Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=True, decoder_steps=2)
+    with_decoder = Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=True, decoder_steps=1)
     env = DrivingSimulator(with_decoder, observation="video_decoder")
     plain = DrivingSimulator(pipeline)
     assert env.observation_space.shape == (4, 64, 112, 3)
