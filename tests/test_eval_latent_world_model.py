@@ -17,6 +17,12 @@ from tests.test_gaia2_generate import checkpoints  # noqa: F401  (a fixture)
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
+# GAIA-2 benchmark scripts run end to end at their protocols' cost, mostly on the shipped weights (6–35 s each): the
+# slow tier (`make test-slow`, CI). Every gaia_app line they reach is reached by the quick tier too
+# (docs/benchmarks.md, "two tiers").
+BENCHMARK_SCRIPT = pytest.mark.slow
+
+
 def load_benchmark(name: str):
     """The module of benchmarks/<name>.py (the benchmarks folder is scripts, not a package)."""
     spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
@@ -60,6 +66,7 @@ def test_interval_is_the_mean_and_a_normal_half_width(bench) -> None:
     assert bench.interval(torch.tensor([1.0, 3.0])) == f"2.00 ± {1.96 * 2 ** 0.5 / 2 ** 0.5:.2f}"
 
 
+@BENCHMARK_SCRIPT
 def test_condition_gain_reads_a_weights_folder(checkpoints, monkeypatch, capsys) -> None:  # noqa: F811
     """benchmarks/gaia2_condition_gain.py --weights gaia2: the teacher-forced gains of the shipped world model."""
     module = load_benchmark("gaia2_condition_gain")
@@ -69,6 +76,7 @@ def test_condition_gain_reads_a_weights_folder(checkpoints, monkeypatch, capsys)
     assert re.search(r"action discrimination with agents +[+-][\d.]+ \[[+-][\d.]+, [+-][\d.]+\]", out), out
 
 
+@BENCHMARK_SCRIPT
 def test_gaia2_probe_quality_scores_the_ceiling_against_the_reference() -> None:
     """benchmarks/gaia2_probe_quality.py: the evaluation's action probe, model-free, on two scenes."""
     module = load_benchmark("gaia2_probe_quality")
@@ -82,6 +90,7 @@ def test_gaia2_probe_quality_scores_the_ceiling_against_the_reference() -> None:
     assert result["curvature_contrast"]["reference"] == pytest.approx(0.04, abs=0.01)
 
 
+@BENCHMARK_SCRIPT
 def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_probe(tmp_path) -> None:
     """benchmarks/gaia2_action_adherence.py: every folder × guidance scale is scored on one probe with the same scenes
     and noise: a copy of the shipped folder gets the same table as the original, another guidance scale and (in the
@@ -160,6 +169,7 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
                      "model.evaluate.probe_clips=1", "model.evaluate.probe_steps=1", "model.sampler.steps=1"])
 
 
+@BENCHMARK_SCRIPT
 def test_gaia2_agent_guidance_splits_iou_inside_and_outside_the_boxes(tmp_path) -> None:
     """benchmarks/gaia2_agent_guidance.py: the evaluation's agent table alone, with the IoU inside the conditioning
     boxes and the agent share outside them for every row, the guided rows paired to plain CFG; refuses scale 0."""

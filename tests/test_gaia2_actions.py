@@ -9,7 +9,9 @@ from hydra import compose, initialize_config_dir
 
 from gaia_app.protocols.gaia2_actions import (
     mirror_order,
+    noise_draws,
     probe_mirror,
+    probe_stride,
     probe_views,
     resimulated,
     rig_world,
@@ -61,3 +63,21 @@ def test_the_rig_probe_refuses_a_rig_without_mirror_twins_and_an_unknown_choice(
     cfg.model.evaluate.probe_cameras = "all"
     with pytest.raises(ValueError, match=r"model.evaluate.probe_cameras='all': expected one of \('front', 'rig'\)"):
         probe_views(cfg)
+
+
+@pytest.mark.parametrize("stride", [0, 5, 1.5, "2"])
+def test_a_probe_stride_outside_one_latent_step_is_refused(stride) -> None:
+    cfg = rig_config()
+    assert probe_stride(cfg) == cfg.model.evaluate.probe_stride
+    cfg.model.evaluate.probe_stride = stride
+    with pytest.raises(ValueError, match=rf"model.evaluate.probe_stride={stride!r}: expected a whole number"):
+        probe_stride(cfg)
+
+
+@pytest.mark.parametrize("draws", [0, -1, 2.0])
+def test_noise_draws_must_be_a_whole_number_of_futures(draws) -> None:
+    cfg = rig_config()
+    assert noise_draws(cfg) == cfg.model.evaluate.noise_draws == 1
+    cfg.model.evaluate.noise_draws = draws
+    with pytest.raises(ValueError, match=rf"model.evaluate.noise_draws={draws!r}: expected a whole number ≥ 1"):
+        noise_draws(cfg)

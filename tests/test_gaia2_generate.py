@@ -203,8 +203,9 @@ def test_bad_added_agents_are_named(checkpoints, tmp_path: Path) -> None:
 
 
 def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> None:
+    # model.steps=3: two context steps and one generated latent step (4 frames), half the rollouts' cost
     results = run(checkpoints, tmp_path, "evaluate", "model.evaluate.contexts=2", "model.evaluate.probe_clips=2",
-                  "model.evaluate.probe_steps=3")
+                  "model.evaluate.probe_steps=3", "model.steps=3")
     assert set(results["agents"]["rows"]) == {"real frames", "tokenized real", "model, agent conditions",
                                               "model, plain CFG ×3", "model, selective CFG ×3",
                                               "model, selective CFG ×3, full second pass",
@@ -235,7 +236,7 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
         assert all(np.isfinite(row[m]["mean"]) and row[m]["n"] == 2 for m in ("speed_contrast", "curvature_contrast",
                                                                             "speed_mae", "curvature_mae"))
     fidelity = results["fidelity"]
-    assert fidelity["clips"] == 6 and fidelity["context_frames"] == 8 and fidelity["generated_frames"] == 8
+    assert fidelity["clips"] == 6 and fidelity["context_frames"] == 8 and fidelity["generated_frames"] == 4
     assert set(fidelity["rows"]) == {"model (rollouts)", "tokenized real (ceiling)", "held frame (floor)"}
     assert all(set(row) == {"psnr", "ssim", "fvmd", "agent_iou"} for row in fidelity["rows"].values())
     table = (tmp_path / "gaia2_evaluation.md").read_text()
@@ -243,9 +244,9 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     assert "agent masks − plain CFG" in table
     assert "| probe check: ceiling ≤ ½ floor and ≤ ½ reference |" in table
     assert "| model, each camera generated alone (floor) |" in table
-    # 8 generated frames, the probe reads pairs 2 frames apart (model.evaluate.probe_stride): 6 pairs of generated
+    # 4 generated frames, the probe reads pairs 2 frames apart (model.evaluate.probe_stride): 2 pairs of generated
     # frames
-    assert results["actions"]["probe_stride"] == 2 and results["actions"]["scored_steps"] == 6
+    assert results["actions"]["probe_stride"] == 2 and results["actions"]["scored_steps"] == 2
     assert results["actions"]["probe_cameras"] == "rig" and "Action adherence (every camera of the rig," in table
 
     # one table with a GAIA-1 evaluation run (its evaluation.json layout, protocols/evaluate.py)
