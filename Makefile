@@ -104,8 +104,9 @@ reproduce: install
 # pytest-xdist worker per logical CPU (TEST_WORKERS=0 runs in one process); --dist loadscope keeps each test module
 # on one worker, so module-scoped fixtures (trained tiny models) are built once.
 # `make test` leaves out the tests marked slow (multi-process DDP/FSDP2/DeepSpeed runs, paper-size presets, the
-# commaVQ learning run, the closed-loop pin, four GAIA-2 benchmark scripts end to end; every line they reach is also
-# reached by the quick tier, see docs/benchmarks.md); `make test-slow` runs those, `make test-all` both. CI runs both.
+# commaVQ learning run, the closed-loop pin, six benchmark scripts end to end on the shipped weights; every line they
+# reach is also reached by the quick tier, see docs/benchmarks.md); `make test-slow` runs those, `make test-all` both.
+# CI runs both.
 TEST_WORKERS ?= logical
 test: install-dev lint
 	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadscope -m "not slow" $(PYTEST_ARGS)

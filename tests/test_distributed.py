@@ -116,9 +116,11 @@ def test_fsdp_sharded_checkpoint_loads_on_one_cpu(token_cache: Path, tmp_path: P
     strategy writes it, from a one-process CPU run."""
     import torch.distributed.checkpoint as dcp
 
+    from gaia_app.tasks.train import train
+
     one_process = [arg for arg in world_model_args(token_cache, tmp_path) if not arg.startswith("trainer.devices")]
-    run_train([*one_process, "trainer.devices=1"])
-    single_file = only_run_dir(tmp_path) / "checkpoints" / "last.ckpt"
+    train(compose_config("train", [*one_process, "trainer.devices=1"], tmp_path / "run"))  # in this process
+    single_file = tmp_path / "run" / "checkpoints" / "last.ckpt"
     checkpoint = torch.load(single_file, map_location="cpu", weights_only=False)
     sharded = tmp_path / "fsdp_last.ckpt"
     dcp.save({"model": checkpoint.pop("state_dict")}, checkpoint_id=sharded, no_dist=True)

@@ -8,6 +8,7 @@ import pytest
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
+@pytest.mark.slow  # a benchmark script end to end on the shipped weights; the quick tier reaches its gaia_app lines
 def test_shipped_decoder_rows_with_independent_and_antithetic_draws(tmp_path: Path, monkeypatch) -> None:
     sys.path.insert(0, str(BENCHMARKS))
     import eval_video_decoder

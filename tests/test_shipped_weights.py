@@ -361,6 +361,7 @@ def test_controllability_shares_noise_within_a_context_when_asked(shipped: Path,
     assert groups[1] is None
 
 
+@pytest.mark.slow  # a benchmark script end to end on the shipped weights; the quick tier reaches its gaia_app lines
 def test_shared_noise_benchmark_scores_both_couplings_per_seed(shipped: Path, tmp_path: Path, monkeypatch) -> None:
     """benchmarks/shared_noise_adherence.py: ceiling, floor, and the model per seed and coupling, paired."""
     import json

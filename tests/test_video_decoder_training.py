@@ -31,8 +31,8 @@ def tokenizer_ckpt(tiny_tokenizer_ckpt: Path) -> Path:
 def decoder_run(tokenizer_ckpt: Path, tmp_path_factory) -> Path:
     run = tmp_path_factory.mktemp("decoder")
     overrides = ["experiment=gaia1/video_decoder_tiny", "trainer=tiny", "trainer.max_steps=3",
-                 "trainer.val_check_interval=3", f"model.tokenizer_ckpt={tokenizer_ckpt}", "data.source.num_clips=4",
-                 "data.val_source.num_clips=2",
+                 "trainer.val_check_interval=3", "trainer.limit_val_batches=1",
+                 f"model.tokenizer_ckpt={tokenizer_ckpt}", "data.source.num_clips=4", "data.val_source.num_clips=2",
                  "extras.print_config=false", "logger=none", "callbacks=model_checkpoint", *TINY_NET]
     out = train(compose_config("train", overrides, run))
     assert out["trainer"].global_step == 3
