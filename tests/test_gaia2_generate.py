@@ -203,7 +203,7 @@ def test_bad_added_agents_are_named(checkpoints, tmp_path: Path) -> None:
 
 
 def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> None:
-    # model.steps=3: two context steps and one generated latent step (4 frames), half the rollouts' cost
+    # model.steps=3: two context steps and one generated latent step (4 frames), half the rollouts
     results = run(checkpoints, tmp_path, "evaluate", "model.evaluate.contexts=2", "model.evaluate.probe_clips=2",
                   "model.evaluate.probe_steps=3", "model.steps=3")
     assert set(results["agents"]["rows"]) == {"real frames", "tokenized real", "model, agent conditions",
