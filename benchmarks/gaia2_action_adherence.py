@@ -3,7 +3,8 @@ probe, the same held-out scenes, commands and noise for every folder and scale. 
 `generate.py model=gaia2 mode=evaluate` (gaia_app/protocols/gaia2_actions.py) without the other tables, so two versions
 of the weights compare in about a third of two evaluations' time. `--scales` replaces model.guidance.scale by each
 of its values in turn (0: unguided), `--intervals` model.guidance.interval (the flow times at which a solver step is
-guided). Everything after `--` is a Hydra override of generate.yaml.
+guided). The real continuations of the ceiling row depend on neither the weights nor the scale: they are rendered
+once and shared by every variant. Everything after `--` is a Hydra override of generate.yaml.
 
     python benchmarks/gaia2_action_adherence.py --weights gaia2 my_weights --out outputs/adherence -- \
         model.evaluate.contexts=16 model.evaluate.probe_clips=256 model.evaluate.probe_steps=3000 \

@@ -268,7 +268,8 @@ def test_the_seed_evaluation_pairs_every_controller(tmp_path) -> None:
     none = result["summary"]["none"]
     assert none["ratio_to_none"]["mean"] == 1.0 and none["probed_speed_error"]["n"] == 2
     assert none["command_error"]["mean"] > 0 and all(len(v) == 2 for v in result["per_seed"].values())
-    for bad in (["--gain", "1.5"], ["--guidance", "-1"], ["--guidance", "nan"], ["--clip", "-1"],
+    for bad in (["--gain", "1.5"], ["--guidance", "-1"], ["--guidance", "nan"], ["--clip", "-1"], ["--seconds", "0"],
+                ["--target-speed", "80"],
                 ["--seeds", "1", "--controllers", "filtered"], ["--seeds", "1", "--controllers", "fast,none"],
                 ["--seeds", "1", "--clips", "x"], ["--clips", "0-3"]):
         with pytest.raises(SystemExit):
