@@ -105,9 +105,9 @@ reproduce: install
 # on one worker, so module-scoped fixtures (trained tiny models) are built once; --no-loadscope-reorder hands the
 # modules out in collection order, which tests/conftest.py starts with the longest ones.
 # `make test` leaves out the tests marked slow (multi-process DDP/FSDP2/DeepSpeed runs, paper-size presets, the
-# commaVQ learning run, the closed-loop pin, benchmark scripts on the shipped weights and a diagnosis experiment end
-# to end; every line they reach is also reached by the quick tier, see docs/benchmarks.md); `make test-slow` runs
-# those, `make test-all` both. CI runs both.
+# learning runs scored on held-out data (commaVQ, the agent probe, the video decoder), the closed-loop pin, benchmark
+# scripts on the shipped weights and a diagnosis experiment end to end; every line they reach is also reached by the
+# quick tier, see docs/benchmarks.md); `make test-slow` runs those, `make test-all` both. CI runs both.
 TEST_WORKERS ?= logical
 test: install-dev lint
 	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadscope --no-loadscope-reorder -m "not slow" $(PYTEST_ARGS)

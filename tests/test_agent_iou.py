@@ -48,6 +48,7 @@ def test_overlap_within_a_region_counts_only_its_pixels() -> None:
         agent_overlap(Oracle(), frames, masks, region=box[..., :4, :4])
 
 
+@pytest.mark.slow  # a learning run scored on held-out clips; make test reaches every line it reaches
 def test_probe_learns_agent_masks_of_the_synthetic_world() -> None:
     world = SyntheticClipDataset(num_clips=14, seed=11, height=64, width=112, clip_len=29)
     frames, masks = agent_clips([world.sample(i) for i in range(14)], rate=6.25, frames=8)
