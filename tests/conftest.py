@@ -28,15 +28,18 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 torch.set_num_threads(1 if os.environ.get("PYTEST_XDIST_WORKER") else 2)
 
 
-# The modules that take longest under `make test` (seconds summed over their tests, 2026-11-29: 67, 63, 50, 46, 38,
-# 24, 24, 22, 16, 16), collected first: with `--dist loadscope --no-loadscope-reorder` (Makefile) each worker takes
-# the next module in this order, so the long ones start early and the two workers finish together instead of one
-# running a long module alone at the end (xdist's own reorder puts modules with many tests first, not long ones).
-# A stale list costs only balance, never a test.
-LONGEST_MODULES = ["test_generate_rollouts.py", "test_gaia2_generate.py", "test_simulator.py",
+# The modules that take longest under `make test` (seconds summed over their tests, 2026-11-29: from 63 down to 7),
+# collected first: with `--dist loadscope --no-loadscope-reorder` (Makefile) each worker takes the next module in this
+# order, so the long ones start early and the two workers finish together on the short ones instead of one running a
+# long module alone at the end (xdist's own reorder puts modules with many tests first, not long ones). A stale list
+# costs only balance, never a test.
+LONGEST_MODULES = ["test_gaia2_generate.py", "test_generate_rollouts.py", "test_simulator.py",
                    "test_headline_claims.py", "test_video_decoder_training.py", "test_configs.py",
-                   "test_simulator_gym.py", "test_agent_futures.py", "test_encode_latents.py",
-                   "test_controllability.py"]
+                   "test_simulator_gym.py", "test_agent_futures.py", "test_shipped_weights.py",
+                   "test_pandaset_chain.py", "test_encode_latents.py", "test_controllability.py", "test_train.py",
+                   "test_vector_simulator.py", "test_feature_distance.py", "test_scaling.py",
+                   "test_eval_latent_world_model.py", "data/test_synthetic.py", "test_settings.py",
+                   "test_shipped_gaia2_weights.py", "test_agent_fidelity.py", "lit/test_gaia1_tokenizer.py"]
 
 
 def pytest_collection_modifyitems(config, items) -> None:

@@ -101,3 +101,12 @@ def test_benchmarks_never_import_tasks() -> None:
     for path in sorted((PACKAGE.parent / "benchmarks").glob("*.py")):
         bad = [name for name in imports_of(path) if name == "gaia_app.tasks" or name.startswith("gaia_app.tasks.")]
         assert not bad, f"benchmarks/{path.name} imports {bad}"
+
+
+def test_the_longest_modules_listed_for_the_workers_exist() -> None:
+    """tests/conftest.py hands these modules out first under `make test`; a misspelt or removed one would silently
+    drop out of the order."""
+    from tests.conftest import LONGEST_MODULES, ROOT
+
+    missing = [name for name in LONGEST_MODULES if not (ROOT / "tests" / name).is_file()]
+    assert not missing and len(set(LONGEST_MODULES)) == len(LONGEST_MODULES), missing

@@ -30,12 +30,12 @@ def tokenizer_ckpt(tiny_tokenizer_ckpt: Path) -> Path:
 @pytest.fixture(scope="module")
 def decoder_run(tokenizer_ckpt: Path, tmp_path_factory) -> Path:
     run = tmp_path_factory.mktemp("decoder")
-    overrides = ["experiment=gaia1/video_decoder_tiny", "trainer=tiny", "trainer.max_steps=3",
-                 "trainer.val_check_interval=3", "trainer.limit_val_batches=1",
+    overrides = ["experiment=gaia1/video_decoder_tiny", "trainer=tiny", "trainer.max_steps=2",
+                 "trainer.val_check_interval=2", "trainer.limit_val_batches=1",
                  f"model.tokenizer_ckpt={tokenizer_ckpt}", "data.source.num_clips=4", "data.val_source.num_clips=2",
                  "extras.print_config=false", "logger=none", "callbacks=model_checkpoint", *TINY_NET]
     out = train(compose_config("train", overrides, run))
-    assert out["trainer"].global_step == 3
+    assert out["trainer"].global_step == 2
     return run
 
 
@@ -46,7 +46,7 @@ def test_training_keeps_an_ema_and_checkpoints_reload(decoder_run: Path) -> None
     live = dict(module.decoder.named_parameters())
     averaged = dict(module.ema_decoder.named_parameters())
     assert any(not torch.equal(live[k], averaged[k]) for k in live)  # the average lags the trained weights
-    assert module.ema.n_averaged.item() == 3
+    assert module.ema.n_averaged.item() == 2
 
 
 def test_validation_logs_every_task(decoder_run: Path) -> None:
