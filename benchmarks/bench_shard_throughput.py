@@ -30,7 +30,7 @@ from gaia_app.data.clip_folder import ClipFolderDataset
 from gaia_app.data.clip_writer import write_clip
 from gaia_app.data.datamodules import ClipDataModule, TokenCacheDataModule
 from gaia_app.data.shard import write_shards
-from gaia_app.data.shards import ClipShardDataModule, TokenShardDataModule
+from gaia_app.data.shard_datamodules import ClipShardDataModule, TokenShardDataModule
 from gaia_app.data.synthetic import generate_clip
 from gaia_app.data.token_cache import TokenSegment, write_segment
 

@@ -15,7 +15,7 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 
 from gaia_app.data.shard import write_shards
-from gaia_app.data.shards import TokenShardDataModule
+from gaia_app.data.shard_datamodules import TokenShardDataModule
 from tests.data.test_shards import SEQ, STRIDE, token_cache, window_ids
 from tests.test_distributed import run_train, world_model_args
 

@@ -16,14 +16,8 @@ import torch
 from gaia_app.data.latent_cache import write_latent_clip
 from gaia_app.data.shard import main as shard_main
 from gaia_app.data.shard import parse_size, write_shards
-from gaia_app.data.shards import (
-    ClipShardDataModule,
-    LatentShardDataModule,
-    ShardLoader,
-    TokenShardDataModule,
-    shard_urls,
-    split_shards,
-)
+from gaia_app.data.shard_datamodules import ClipShardDataModule, LatentShardDataModule, TokenShardDataModule
+from gaia_app.data.shards import ShardLoader, shard_urls, split_shards
 from gaia_app.data.token_cache import TokenSegment, find_segments, load_segment, write_segment
 from tests.data.test_latent_cache import latent_clip
 
@@ -250,7 +244,7 @@ def test_balancing_remote_shards_needs_their_index(tokens, tmp_path: Path) -> No
 
 def test_window_references_collate_to_the_folder_loaders_batch(tokens) -> None:
     from gaia_app.data.collate import collate_token_windows
-    from gaia_app.data.shards import collate_token_refs
+    from gaia_app.data.shard_datamodules import collate_token_refs
     from gaia_app.data.token_cache import TokenWindows
 
     cache, _ = tokens
