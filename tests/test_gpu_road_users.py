@@ -1,0 +1,86 @@
+"""benchmarks/gpu_road_users.py (issue 49): the GPU run that trains the GAIA-1 world model on the D = 4 tokenizer's
+448 tokens per frame. On a CPU: its pieces, its refusal without CUDA, and (slow tier) the whole dry run, whose
+checkpoints load as inference nets."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from gaia_app.weights.nets import NETS_RECORD, checkpoint_nets
+from tests.conftest import ROOT
+
+
+@pytest.fixture(scope="module")
+def road_users():
+    spec = importlib.util.spec_from_file_location("gpu_road_users", ROOT / "benchmarks" / "gpu_road_users.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_training_stages_stop_inside_their_budget(road_users) -> None:
+    assert road_users.max_time(300) == "+trainer.max_time=00:00:04:15"
+    assert road_users.max_time(3_700) == "+trainer.max_time=00:01:00:55"
+    assert road_users.max_time(10) == "+trainer.max_time=00:00:00:30"  # never below half a minute
+
+
+def test_both_clip_mixes_go_into_one_cache(road_users, tmp_path: Path) -> None:
+    commands = road_users.tokenize_commands(tmp_path / "tok.ckpt", tmp_path / "cache", dry=False)
+    assert len(commands) == 2
+    for argv in commands:
+        assert {f"out_dir={tmp_path / 'cache'}", "device=cuda", "data.source.num_clips=1024"} <= set(argv)
+    assert "data.source.driven_share=0.5" in commands[0] and "data.val_source.num_clips=128" in commands[0]
+    assert {"data.source.driven_share=1.0", "seed=5", "splits=[train]"} <= set(commands[1])
+    dry = road_users.tokenize_commands(tmp_path / "tok.ckpt", tmp_path / "cache", dry=True)
+    assert all("data.source.num_clips=2" in argv and "data.source.num_clips=1024" not in argv for argv in dry)
+
+
+def test_slim_checkpoint_keeps_what_inference_reads_in_float16(road_users, tmp_path: Path) -> None:
+    state = {"net.weight": torch.randn(4, 4), "net.steps": torch.tensor(3)}
+    full = {"state_dict": state, "hyper_parameters": {"model_cfg": {"a": 1}}, NETS_RECORD: {"component": "tokenizer"},
+            "global_step": 7, "optimizer_states": [{"big": torch.randn(100)}], "loops": {}}
+    torch.save(full, tmp_path / "last.ckpt")
+    info = road_users.slim_checkpoint(tmp_path / "last.ckpt", tmp_path / "slim.ckpt")
+    slim = torch.load(tmp_path / "slim.ckpt", weights_only=True)
+    assert set(slim) == {"state_dict", "hyper_parameters", NETS_RECORD, "global_step"}
+    assert slim["state_dict"]["net.weight"].dtype == torch.float16
+    assert slim["state_dict"]["net.steps"].dtype == torch.int64  # counters stay integers
+    torch.testing.assert_close(slim["state_dict"]["net.weight"].float(), state["net.weight"], atol=1e-3, rtol=1e-3)
+    assert info == {"file": "slim.ckpt", "megabytes": info["megabytes"], "global_step": 7}
+    assert not (tmp_path / "slim.partial").exists()
+
+
+def test_without_cuda_the_real_run_refuses_in_one_line(road_users, tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(SystemExit, match="needs CUDA"):
+        road_users.main(["--out", str(tmp_path)])
+    assert not (tmp_path / "road_users.json").exists()
+
+
+def test_a_failed_stage_is_recorded_and_stops_the_run(road_users, tmp_path: Path) -> None:
+    report = road_users.Report(tmp_path, {"dry_run": True})
+    ok = road_users.run_stage(report, tmp_path, "broken", [["-c", "print('x' * 10); raise SystemExit(3)"],
+                                                           ["-c", "print('never')"]], budget=60)
+    stage = json.loads((tmp_path / "road_users.json").read_text())["stages"]["broken"]
+    assert not ok and stage["status"] == "exit 3" and len(stage["commands"]) == 2
+    log = (tmp_path / "broken.log").read_text()
+    assert "xxxxxxxxxx" in log and "never" not in log
+
+
+@pytest.mark.slow
+def test_dry_run_trains_every_stage_and_brings_back_loadable_checkpoints(road_users, tmp_path: Path) -> None:
+    data = road_users.main(["--out", str(tmp_path / "out"), "--work", str(tmp_path / "work"), "--dry-run"])
+    stages = data["stages"]
+    assert all(stages[name]["status"] == "ok" for name in ("tokenizer_d4", "tokenizer_d4_long", "tokenize",
+                                                             "world_model")), stages
+    world_model = checkpoint_nets(tmp_path / "out/world_model_d4.ckpt", "world_model", "world_model_ckpt")
+    tokenizer = checkpoint_nets(tmp_path / "out/tokenizer_d4.ckpt", "tokenizer", "tokenizer_ckpt")
+    assert world_model.nets["net"].n == 448  # image tokens per frame
+    grid = tokenizer.nets["net"].encode(torch.zeros(1, 3, 64, 112)).shape[-2:]
+    assert grid[0] * grid[1] == 448
+    assert len(list((tmp_path / "out").iterdir())) <= 8  # what a GPU machine brings back
