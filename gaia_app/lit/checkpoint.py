@@ -7,6 +7,7 @@ the bare nets (gaia_app/weights/nets.py, or shipped weights in gaia_app/weights/
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
@@ -39,12 +40,14 @@ def load_module(ckpt_path: str | Path, map_location: str | torch.device = "cpu")
 
 
 def load_net_weights(net: torch.nn.Module, path: str | Path, what: str, prefix: str = "net.",
-                     component: str | None = None) -> None:
+                     component: str | None = None, fresh: Sequence[str] = ()) -> None:
     """Copy the `{prefix}*` weights of a training checkpoint into `net`, in place (strict: same architecture).
     what: the checkpoint that `model.init_from` should name, for errors (e.g. "a stage-1 tokenizer checkpoint").
     component: also accept a weights folder (a path, or a shipped name such as "gaia2") holding
     `<component>.safetensors`, whose tensors are named `<net key>.<parameter>` like a checkpoint's (weights/folders.py):
-    fine-tuning starts from shipped weights without a training checkpoint."""
+    fine-tuning starts from shipped weights without a training checkpoint.
+    fresh: dotted names of `net`'s modules that start as an identity (e.g. a zero-initialised residual refiner): the
+    weights may lack them, and then they keep their initialisation; any other missing key is an error."""
     weights = initial_weights(path, what, prefix, component)
     try:
         missing, unexpected = net.load_state_dict(weights, strict=False)
@@ -52,6 +55,7 @@ def load_net_weights(net: torch.nn.Module, path: str | Path, what: str, prefix: 
         first = str(error).strip().splitlines()[1:2]
         raise ValueError(f"model.init_from='{path}' does not fit model.net: {' '.join(first).strip()} (same preset "
                          "as the run it comes from?)") from None
+    missing = [key for key in missing if not any(key.startswith(f"{name}.") for name in fresh)]
     if missing or unexpected:
         raise ValueError(f"model.init_from='{path}' does not fit model.net: missing {missing[:5]}, "
                          f"unexpected {unexpected[:5]} (same preset as the run it comes from?)")

@@ -279,6 +279,7 @@ def latent_mosaic(latents: torch.Tensor, columns: int = 8) -> torch.Tensor:
 
 def load_tokenizer_weights(net: VideoTokenizer, path: str | Path) -> None:
     """Copy the `net.*` weights of a VideoTokenizerModule checkpoint, or of a weights folder's video_tokenizer (e.g.
-    "gaia2", the shipped one), into `net` (strict: same architecture)."""
+    "gaia2", the shipped one), into `net` (strict: same architecture, except that weights without the decoder's
+    refiner start a net that has one)."""
     load_net_weights(net, path, "a stage-1 tokenizer checkpoint (a VideoTokenizerModule checkpoint)",
-                     component="video_tokenizer")
+                     component="video_tokenizer", fresh=net.fresh_modules)

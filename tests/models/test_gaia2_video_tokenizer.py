@@ -160,3 +160,37 @@ def test_pure_transformer_variant_without_conv_stage() -> None:
 def test_conv_stage_must_divide_the_spatial_downsampling() -> None:
     with pytest.raises(ValueError, match=r"spatial_downsampling=12 must divide by .* = 8"):
         VideoTokenizer(**{**SMALL, "spatial_downsampling": 12, "conv_mults": (1, 2, 2, 2)})
+
+
+def test_refiner_starts_as_the_decoder_without_it() -> None:
+    """The refiner's output layer is zero at init: a decoder given a refiner decodes what the same weights decode
+    without one, and the refiner's layer is where the GAN gradient is balanced."""
+    pure = {**SMALL, "conv_mults": ()}
+    torch.manual_seed(0)
+    plain = VideoTokenizer(**pure).eval()
+    refined = VideoTokenizer(**pure, refiner_channels=8, refiner_blocks=1, refiner_features=4).eval()
+    missing, unexpected = refined.load_state_dict(plain.state_dict(), strict=False)
+    assert not unexpected and missing and all(k.startswith(refined.fresh_modules) for k in missing)
+    assert refined.fresh_modules == ("decoder.detail", "decoder.refiner") and plain.fresh_modules == ()
+    with torch.no_grad():
+        latents = torch.randn(1, 2, 2, 6, 4, 8)
+        torch.testing.assert_close(refined.decode(latents), plain.decode(latents))
+    assert refined.last_layer is refined.decoder.refiner.out[-1].weight
+
+
+def test_refiner_corrects_every_pixel_once_trained() -> None:
+    net = VideoTokenizer(**{**SMALL, "conv_mults": ()}, refiner_channels=8, refiner_blocks=1, refiner_features=4)
+    torch.nn.init.normal_(net.decoder.refiner.out[-1].weight, std=0.1)
+    with torch.no_grad():
+        latents = torch.randn(1, 1, 1, 6, 4, 8)
+        net.decoder.refiner.out[-1].weight.zero_()
+        before = net.decode(latents)
+        torch.nn.init.normal_(net.decoder.refiner.out[-1].weight, std=0.1)
+        after = net.decode(latents)
+    assert after.shape == before.shape == (1, 1, 4, 3, 32, 64)
+    assert ((after - before).abs() > 0).float().mean() > 0.99
+
+
+def test_refiner_needs_the_pure_transformer_decoder() -> None:
+    with pytest.raises(ValueError, match=r"refiner_channels needs conv_mults=\[\]"):
+        VideoTokenizer(**SMALL, refiner_channels=8)

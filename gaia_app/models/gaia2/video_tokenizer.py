@@ -73,10 +73,17 @@ class VideoEncoder(nn.Module):
 
 
 class VideoDecoder(nn.Module):
-    """(B, t, C, h, w) latents → (B, t·τ, 3, H, W) frames, temporal attention across the t steps given."""
+    """(B, t, C, h, w) latents → (B, t·τ, 3, H, W) frames, temporal attention across the t steps given.
+
+    With `refiner_channels` > 0 a full-resolution residual conv stage (not in GAIA-2) follows the tubelet head: a
+    second linear head writes `refiner_features` channels per pixel, and the stage adds a correction computed from
+    them and the tubelet RGB. Its output layer starts at zero, so a decoder with a refiner loaded from one without it
+    decodes the same frames until it trains (docs/tokenizer.md, "Road users").
+    """
 
     def __init__(self, spatial: int, temporal: int, latent_channels: int, conv_channels: int, conv_mults: Sequence[int],
-                 conv_blocks: int, dim: int, depth: int, heads: int, mlp_ratio: float, checkpointing: bool):
+                 conv_blocks: int, dim: int, depth: int, heads: int, mlp_ratio: float, checkpointing: bool,
+                 refiner_channels: int = 0, refiner_blocks: int = 2, refiner_features: int = 8):
         super().__init__()
         reduction = 2 ** (len(conv_mults) - 1) if conv_mults else 1
         self.temporal, self.patch = temporal, spatial // reduction
@@ -86,21 +93,43 @@ class VideoDecoder(nn.Module):
         self.untubelet = nn.Linear(dim, temporal * self.patch * self.patch * self.out_channels)
         self.conv = (ConvDecoder(self.out_channels, 3, conv_channels, conv_mults, conv_blocks, checkpointing)
                      if conv_mults else None)
+        self.detail, self.refiner = None, None
+        if refiner_channels:
+            if conv_mults:
+                raise ValueError("refiner_channels needs conv_mults=[] (the refiner follows the tubelet head; a conv "
+                                 "stage already decodes at full resolution)")
+            self.detail = nn.Linear(dim, temporal * self.patch * self.patch * refiner_features)
+            self.refiner = ConvDecoder(3 + refiner_features, 3, refiner_channels, (1,), refiner_blocks, checkpointing)
+            nn.init.zeros_(self.refiner.out[-1].weight)
+            nn.init.zeros_(self.refiner.out[-1].bias)
 
     def forward(self, latents: torch.Tensor) -> torch.Tensor:
         b, t, _, h, w = latents.shape
         tokens = self.stem(rearrange(latents, "b t c h w -> b t (h w) c"))
         tokens = tokens + spacetime_positions(t, h, w, tokens.shape[-1], tokens.device).to(tokens.dtype)
-        x = self.untubelet(self.transformer(tokens))
-        x = rearrange(x, "b t (h w) (tau p q c) -> (b t tau) c (h p) (w q)", h=h, tau=self.temporal, p=self.patch,
-                      q=self.patch)
+        features = self.transformer(tokens)
+        x = self.to_pixels(self.untubelet(features), h)
         if self.conv is not None:
             x = self.conv(x)
+        if self.refiner is not None:
+            x = x + self.refiner(torch.cat([x, self.to_pixels(self.detail(features), h)], dim=1))
         return rearrange(x, "(b T) c H W -> b T c H W", b=b)
+
+    def to_pixels(self, tubelets: torch.Tensor, h: int) -> torch.Tensor:
+        """(b, t, h·w, τ·p·p·c) per-token values → (b·t·τ, c, h·p, w·p) frames."""
+        return rearrange(tubelets, "b t (h w) (tau p q c) -> (b t tau) c (h p) (w q)", h=h, tau=self.temporal,
+                         p=self.patch, q=self.patch)
+
+    @property
+    def fresh_modules(self) -> tuple[str, ...]:
+        """Submodules that start as an identity (a zero correction): weights without them still load."""
+        return ("detail", "refiner") if self.refiner is not None else ()
 
     @property
     def last_layer(self) -> nn.Parameter:
         """Weight of the layer that writes pixels, where the GAN gradient is balanced against reconstruction."""
+        if self.refiner is not None:
+            return self.refiner.out[-1].weight
         return self.conv.out[-1].weight if self.conv is not None else self.untubelet.weight
 
 
@@ -118,6 +147,8 @@ class VideoTokenizer(nn.Module):
             (r = 2^(len(conv_mults) − 1); s must divide by r); [] for a pure transformer on pixel tubelets.
         encoder_dim/depth/heads, decoder_dim/depth/heads: the asymmetric transformers (paper 85M / 200M).
         decoder_conv_channels: width of the decoder's conv stage (None: conv_channels).
+        refiner_channels, refiner_blocks, refiner_features: the decoder's full-resolution residual refiner (not in
+            GAIA-2; 0 channels: none; needs conv_mults=[]), see VideoDecoder.
         mlp_ratio: MLP hidden width over d.
         distill_dim: f, channels of the DINOv2 teacher; adds the trained 1×1 projection of the latent
             mean used by the distillation loss (GAIA-2 report, tokenizer). 0: none.
@@ -142,6 +173,9 @@ class VideoTokenizer(nn.Module):
         decoder_depth: int = 12,
         decoder_heads: int = 16,
         decoder_conv_channels: int | None = None,
+        refiner_channels: int = 0,
+        refiner_blocks: int = 2,
+        refiner_features: int = 8,
         mlp_ratio: float = 4.0,
         distill_dim: int = 0,
         checkpointing: bool = False,
@@ -159,7 +193,8 @@ class VideoTokenizer(nn.Module):
                                     checkpointing)
         self.decoder = VideoDecoder(spatial_downsampling, temporal_downsampling, latent_channels,
                                     decoder_conv_channels or conv_channels, conv_mults, conv_blocks, decoder_dim,
-                                    decoder_depth, decoder_heads, mlp_ratio, checkpointing)
+                                    decoder_depth, decoder_heads, mlp_ratio, checkpointing, refiner_channels,
+                                    refiner_blocks, refiner_features)
         self.distill_dim = distill_dim
         self.distill_head = nn.Conv2d(latent_channels, distill_dim, 1) if distill_dim else None
 
@@ -228,6 +263,11 @@ class VideoTokenizer(nn.Module):
     @property
     def last_layer(self) -> nn.Parameter:
         return self.decoder.last_layer
+
+    @property
+    def fresh_modules(self) -> tuple[str, ...]:
+        """Modules (dotted names) that start as an identity: weights saved without them initialise the rest."""
+        return tuple(f"decoder.{name}" for name in self.decoder.fresh_modules)
 
     def compression(self) -> float:
         """Input values per latent value: (τ·s²·3) / C (paper: 8·32²·3 / 64 = 384)."""
