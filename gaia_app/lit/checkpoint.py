@@ -7,7 +7,7 @@ the bare nets (gaia_app/weights/nets.py, or shipped weights in gaia_app/weights/
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
@@ -40,15 +40,19 @@ def load_module(ckpt_path: str | Path, map_location: str | torch.device = "cpu")
 
 
 def load_net_weights(net: torch.nn.Module, path: str | Path, what: str, prefix: str = "net.",
-                     component: str | None = None, fresh: Sequence[str] = ()) -> None:
+                     component: str | None = None, fresh: Sequence[str] = (),
+                     transform: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]] | None = None) -> None:
     """Copy the `{prefix}*` weights of a training checkpoint into `net`, in place (strict: same architecture).
     what: the checkpoint that `model.init_from` should name, for errors (e.g. "a stage-1 tokenizer checkpoint").
     component: also accept a weights folder (a path, or a shipped name such as "gaia2") holding
     `<component>.safetensors`, whose tensors are named `<net key>.<parameter>` like a checkpoint's (weights/folders.py):
     fine-tuning starts from shipped weights without a training checkpoint.
     fresh: dotted names of `net`'s modules that start as an identity (e.g. a zero-initialised residual refiner): the
-    weights may lack them, and then they keep their initialisation; any other missing key is an error."""
+    weights may lack them, and then they keep their initialisation; any other missing key is an error.
+    transform: maps the weights read to those `net` loads (e.g. widening a tokenizer's latent channels)."""
     weights = initial_weights(path, what, prefix, component)
+    if transform is not None:
+        weights = transform(weights)
     try:
         missing, unexpected = net.load_state_dict(weights, strict=False)
     except RuntimeError as error:  # tensors of other shapes

@@ -28,7 +28,12 @@ from gaia_app.eval.metrics import psnr, ssim
 from gaia_app.lit.adversarial import AdversarialModule, pixel_terms
 from gaia_app.lit.checkpoint import load_net_weights
 from gaia_app.models.gaia2.conditioning import AgentBoxes3d, box_raster, project_boxes
-from gaia_app.models.gaia2.video_tokenizer import VideoTokenizer, VideoTokenizerOutput, kl_bits_per_pixel
+from gaia_app.models.gaia2.video_tokenizer import (
+    VideoTokenizer,
+    VideoTokenizerOutput,
+    kl_bits_per_pixel,
+    widen_latent_channels,
+)
 
 STAGES = ("reconstruction", "gan")
 OFF_WARNINGS = {
@@ -65,6 +70,8 @@ class VideoTokenizerModule(AdversarialModule):
         init_from: checkpoint (or weights folder such as "gaia2") whose tokenizer weights initialise the net when a
             fresh fit starts (stage 2 starts from stage 1; a fine-tune from the shipped weights); None: random init.
             Only `net.*` weights are read; the optimiser starts afresh.
+        widen_latents: init_from has fewer latent channels than model.net: the new ones start unread (not in GAIA-2;
+            widen_latent_channels).
         discriminator: PatchDiscriminator3d factory (used in stage "gan" only), or None.
         perceptual: factory of the frozen perceptual network (applied frame by frame), or none.
         dino: factory of the frozen DINOv2 teacher (`load_vision_teacher` partial), or none.
@@ -82,6 +89,7 @@ class VideoTokenizerModule(AdversarialModule):
         sched: Callable | None = None,
         stage: str = "reconstruction",
         init_from: str | None = None,
+        widen_latents: bool = False,
         discriminator: Callable[[], nn.Module] | None = None,
         perceptual: Callable[[], nn.Module] | str | None = None,
         dino: Callable[[], nn.Module] | str | None = None,
@@ -99,7 +107,7 @@ class VideoTokenizerModule(AdversarialModule):
                          {"perceptual": perceptual, "dino": dino}, gan_start_step, adaptive_weight_max,
                          gradient_clip_val)
         self.off_warnings = {k: v for k, v in OFF_WARNINGS.items() if k != "gan" or stage == "gan"}
-        self.init_from = init_from
+        self.init_from, self.widen_latents = init_from, widen_latents
         self.sample_posterior = sample_posterior
 
     @property
@@ -123,7 +131,7 @@ class VideoTokenizerModule(AdversarialModule):
 
     def load_init_weights(self) -> None:
         """Copy the tokenizer weights of `init_from` into the net (in place: optimiser state stays bound)."""
-        load_tokenizer_weights(self.tokenizer, self.init_from)
+        load_tokenizer_weights(self.tokenizer, self.init_from, self.widen_latents)
 
     def generator_parameters(self) -> Iterable[nn.Parameter]:
         """Stage 1: the whole tokenizer; stage 2: the decoder only (GAIA-2 report, tokenizer: the GAN fine-tunes the
@@ -277,9 +285,11 @@ def latent_mosaic(latents: torch.Tensor, columns: int = 8) -> torch.Tensor:
     return rearrange(x, "t (r q) h w -> t 1 (r h) (q w)", q=columns)
 
 
-def load_tokenizer_weights(net: VideoTokenizer, path: str | Path) -> None:
+def load_tokenizer_weights(net: VideoTokenizer, path: str | Path, widen_latents: bool = False) -> None:
     """Copy the `net.*` weights of a VideoTokenizerModule checkpoint, or of a weights folder's video_tokenizer (e.g.
     "gaia2", the shipped one), into `net` (strict: same architecture, except that weights without the decoder's
-    refiner start a net that has one)."""
+    refiner start a net that has one, and with `widen_latents` weights with fewer latent channels start a net with
+    more: models.gaia2.video_tokenizer.widen_latent_channels)."""
     load_net_weights(net, path, "a stage-1 tokenizer checkpoint (a VideoTokenizerModule checkpoint)",
-                     component="video_tokenizer", fresh=net.fresh_modules)
+                     component="video_tokenizer", fresh=net.fresh_modules,
+                     transform=(lambda weights: widen_latent_channels(weights, net)) if widen_latents else None)

@@ -269,3 +269,22 @@ def test_a_refiner_fine_tune_starts_from_weights_without_it_and_learns(tmp_path:
     broken.configure_model()
     with pytest.raises(ValueError, match=r"missing \['decoder.stem"):
         broken.load_init_weights()
+
+
+def test_widen_latents_starts_a_wider_tokenizer_from_narrow_weights(tmp_path: Path) -> None:
+    """model.widen_latents (docs/tokenizer.md, "Road users"): 8-channel stage-1 weights start a 12-channel net that
+    decodes the narrow net's latents as it did; without the flag the shapes are refused with the key."""
+    stage1 = make_module()
+    trainer, _ = fit(stage1, 1)
+    trainer.save_checkpoint(tmp_path / "narrow.ckpt")
+    wider = functools.partial(TINY_NET, latent_channels=12)
+    module = make_module(net=wider, init_from=str(tmp_path / "narrow.ckpt"), widen_latents=True)
+    module.load_init_weights()
+    clips = FixedClips().clips
+    with torch.no_grad():
+        narrow = stage1.net.encode(clips).mode()
+        padded = torch.cat([narrow, torch.zeros(*narrow.shape[:3], 4, *narrow.shape[-2:])], dim=3)
+        torch.testing.assert_close(module.net.decode(padded), stage1.net.decode(narrow))
+    plain = make_module(net=wider, init_from=str(tmp_path / "narrow.ckpt"))
+    with pytest.raises(ValueError, match="does not fit model.net"):
+        plain.load_init_weights()

@@ -194,3 +194,26 @@ def test_refiner_corrects_every_pixel_once_trained() -> None:
 def test_refiner_needs_the_pure_transformer_decoder() -> None:
     with pytest.raises(ValueError, match=r"refiner_channels needs conv_mults=\[\]"):
         VideoTokenizer(**SMALL, refiner_channels=8)
+
+
+def test_widened_latents_decode_what_the_narrow_tokenizer_decoded() -> None:
+    """widen_latent_channels (the road-users study): a C = 6 tokenizer's weights start a C = 10 one whose first six
+    channels are the narrow posterior's and whose four new channels the decoder does not read yet."""
+    from gaia_app.models.gaia2.video_tokenizer import widen_latent_channels
+
+    pure = {**SMALL, "conv_mults": (), "distill_dim": 5}
+    torch.manual_seed(0)
+    narrow = VideoTokenizer(**pure).eval()
+    wide = VideoTokenizer(**{**pure, "latent_channels": 10}).eval()
+    wide.load_state_dict(widen_latent_channels(narrow.state_dict(), wide))
+    clip = video(1, 1, 4, 32, 64)
+    with torch.no_grad():
+        small, big = narrow.encode(clip), wide.encode(clip)
+        torch.testing.assert_close(big.mean[:, :, :, :6], small.mean)
+        torch.testing.assert_close(big.logvar[:, :, :, :6], small.logvar)
+        latents = torch.cat([small.mean, torch.randn(1, 1, 1, 4, 4, 8)], dim=3)
+        torch.testing.assert_close(wide.decode(latents), narrow.decode(small.mean))
+        torch.testing.assert_close(wide.distill(latents), narrow.distill(small.mean))
+    assert widen_latent_channels(narrow.state_dict(), narrow) is not None
+    with pytest.raises(ValueError, match="10 latent channels, more than the net's 6"):
+        widen_latent_channels(wide.state_dict(), narrow)

@@ -278,6 +278,31 @@ class VideoTokenizer(nn.Module):
         return self.latent_channels * bits_per_value / (self.temporal * self.spatial**2)
 
 
+def widen_latent_channels(weights: dict[str, torch.Tensor], net: VideoTokenizer) -> dict[str, torch.Tensor]:
+    """Weights of a tokenizer with C₀ latent channels → weights that load into `net`, with C ≥ C₀ (not in GAIA-2; the
+    road-users study, docs/tokenizer.md). The first C₀ channels keep their encoder rows (mean and log-variance) and
+    their decoder and distillation columns; the new channels keep `net`'s own encoder rows and start unread (zero
+    columns), so the widened tokenizer decodes what the narrow one did until it trains."""
+    narrow = weights["encoder.head.weight"].shape[0] // 2
+    wide = net.latent_channels
+    if narrow > wide:
+        raise ValueError(f"widen_latent_channels: the weights have {narrow} latent channels, more than the net's "
+                         f"{wide}")
+    if narrow == wide:
+        return weights
+    own, out = net.state_dict(), dict(weights)
+    for name in ("encoder.head.weight", "encoder.head.bias"):
+        rows = own[name].clone()
+        rows[:narrow], rows[wide : wide + narrow] = weights[name][:narrow], weights[name][narrow:]
+        out[name] = rows
+    for name in ("decoder.stem.weight", "distill_head.weight"):
+        if name in weights:
+            columns = torch.zeros_like(own[name])
+            columns[:, :narrow] = weights[name]
+            out[name] = columns
+    return out
+
+
 def kl_bits_per_pixel(posterior: DiagonalGaussian, frames: int, height: int, width: int) -> float:
     """The posterior's KL to N(0, I) in bits per frame pixel: the rate of the latent channel
     (bits-back coding), comparable across tokenizers with the GAIA-1 tokenizer's log2(K) bits per token."""
