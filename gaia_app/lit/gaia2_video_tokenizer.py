@@ -36,6 +36,7 @@ from gaia_app.models.gaia2.video_tokenizer import (
 )
 
 STAGES = ("reconstruction", "gan")
+WIDENINGS = (None, "unread", "read")
 OFF_WARNINGS = {
     "perceptual": "model.perceptual=none (or model.weights.perceptual=0): the perceptual loss "
                   "(GAIA-2 report, tokenizer) is off",
@@ -70,8 +71,9 @@ class VideoTokenizerModule(AdversarialModule):
         init_from: checkpoint (or weights folder such as "gaia2") whose tokenizer weights initialise the net when a
             fresh fit starts (stage 2 starts from stage 1; a fine-tune from the shipped weights); None: random init.
             Only `net.*` weights are read; the optimiser starts afresh.
-        widen_latents: init_from has fewer latent channels than model.net: the new ones start unread (not in GAIA-2;
-            widen_latent_channels).
+        widen_latents: init_from has fewer latent channels than model.net (not in GAIA-2; widen_latent_channels):
+            "unread" (the decoder's columns for the new channels start at zero) or "read" (at their own init); None:
+            shapes must match.
         discriminator: PatchDiscriminator3d factory (used in stage "gan" only), or None.
         perceptual: factory of the frozen perceptual network (applied frame by frame), or none.
         dino: factory of the frozen DINOv2 teacher (`load_vision_teacher` partial), or none.
@@ -89,7 +91,7 @@ class VideoTokenizerModule(AdversarialModule):
         sched: Callable | None = None,
         stage: str = "reconstruction",
         init_from: str | None = None,
-        widen_latents: bool = False,
+        widen_latents: str | None = None,
         discriminator: Callable[[], nn.Module] | None = None,
         perceptual: Callable[[], nn.Module] | str | None = None,
         dino: Callable[[], nn.Module] | str | None = None,
@@ -101,6 +103,8 @@ class VideoTokenizerModule(AdversarialModule):
     ):
         if stage not in STAGES:
             raise ValueError(f"model.stage={stage!r}: expected one of {STAGES}")
+        if widen_latents not in WIDENINGS:
+            raise ValueError(f"model.widen_latents={widen_latents!r}: expected one of {WIDENINGS}")
         self.stage = stage
         self.weights = VideoLossWeights(**dict(weights or {}))
         super().__init__(net, optim, sched, discriminator if stage == "gan" else None,
@@ -285,11 +289,12 @@ def latent_mosaic(latents: torch.Tensor, columns: int = 8) -> torch.Tensor:
     return rearrange(x, "t (r q) h w -> t 1 (r h) (q w)", q=columns)
 
 
-def load_tokenizer_weights(net: VideoTokenizer, path: str | Path, widen_latents: bool = False) -> None:
+def load_tokenizer_weights(net: VideoTokenizer, path: str | Path, widen_latents: str | None = None) -> None:
     """Copy the `net.*` weights of a VideoTokenizerModule checkpoint, or of a weights folder's video_tokenizer (e.g.
     "gaia2", the shipped one), into `net` (strict: same architecture, except that weights without the decoder's
     refiner start a net that has one, and with `widen_latents` weights with fewer latent channels start a net with
     more: models.gaia2.video_tokenizer.widen_latent_channels)."""
     load_net_weights(net, path, "a stage-1 tokenizer checkpoint (a VideoTokenizerModule checkpoint)",
                      component="video_tokenizer", fresh=net.fresh_modules,
-                     transform=(lambda weights: widen_latent_channels(weights, net)) if widen_latents else None)
+                     transform=(lambda weights: widen_latent_channels(weights, net, widen_latents == "read"))
+                     if widen_latents else None)

@@ -76,7 +76,7 @@ def changed(before: dict[str, torch.Tensor], after: torch.nn.Module) -> set[str]
 def test_stage_one_learns_a_fixed_batch() -> None:
     """Overfitting two clips: the reconstruction loss (L1 + L2) falls at least 5× in 100 steps."""
     module = make_module(optim=functools.partial(torch.optim.AdamW, lr=3e-3, weight_decay=0.0))
-    _, record = fit(module, 50)
+    _, record = fit(module, 100)
     first = record.terms[0]["l1"] + record.terms[0]["l2"]
     last = sum(t["l1"] + t["l2"] for t in record.terms[-10:]) / 10
     assert last < first / 5, f"reconstruction loss {first:.3f} → {last:.3f}"
@@ -278,13 +278,18 @@ def test_widen_latents_starts_a_wider_tokenizer_from_narrow_weights(tmp_path: Pa
     trainer, _ = fit(stage1, 1)
     trainer.save_checkpoint(tmp_path / "narrow.ckpt")
     wider = functools.partial(TINY_NET, latent_channels=12)
-    module = make_module(net=wider, init_from=str(tmp_path / "narrow.ckpt"), widen_latents=True)
+    module = make_module(net=wider, init_from=str(tmp_path / "narrow.ckpt"), widen_latents="unread")
     module.load_init_weights()
     clips = FixedClips().clips
     with torch.no_grad():
         narrow = stage1.net.encode(clips).mode()
         padded = torch.cat([narrow, torch.zeros(*narrow.shape[:3], 4, *narrow.shape[-2:])], dim=3)
         torch.testing.assert_close(module.net.decode(padded), stage1.net.decode(narrow))
+    read = make_module(net=wider, init_from=str(tmp_path / "narrow.ckpt"), widen_latents="read")
+    read.load_init_weights()
+    assert read.net.decoder.stem.weight[:, 8:].abs().sum() > 0  # the new channels are read from the first step
     plain = make_module(net=wider, init_from=str(tmp_path / "narrow.ckpt"))
     with pytest.raises(ValueError, match="does not fit model.net"):
         plain.load_init_weights()
+    with pytest.raises(ValueError, match="model.widen_latents=True"):
+        make_module(widen_latents=True)

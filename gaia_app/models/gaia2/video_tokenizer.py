@@ -278,11 +278,13 @@ class VideoTokenizer(nn.Module):
         return self.latent_channels * bits_per_value / (self.temporal * self.spatial**2)
 
 
-def widen_latent_channels(weights: dict[str, torch.Tensor], net: VideoTokenizer) -> dict[str, torch.Tensor]:
+def widen_latent_channels(weights: dict[str, torch.Tensor], net: VideoTokenizer,
+                          read_new: bool = False) -> dict[str, torch.Tensor]:
     """Weights of a tokenizer with C₀ latent channels → weights that load into `net`, with C ≥ C₀ (not in GAIA-2; the
     road-users study, docs/tokenizer.md). The first C₀ channels keep their encoder rows (mean and log-variance) and
     their decoder and distillation columns; the new channels keep `net`'s own encoder rows and start unread (zero
-    columns), so the widened tokenizer decodes what the narrow one did until it trains."""
+    columns: the widened tokenizer decodes what the narrow one did until it trains), or with `read_new` keep `net`'s
+    own columns too, so the decoder reads them from the first step."""
     narrow = weights["encoder.head.weight"].shape[0] // 2
     wide = net.latent_channels
     if narrow > wide:
@@ -297,7 +299,7 @@ def widen_latent_channels(weights: dict[str, torch.Tensor], net: VideoTokenizer)
         out[name] = rows
     for name in ("decoder.stem.weight", "distill_head.weight"):
         if name in weights:
-            columns = torch.zeros_like(own[name])
+            columns = own[name].clone() if read_new else torch.zeros_like(own[name])
             columns[:, :narrow] = weights[name]
             out[name] = columns
     return out
