@@ -214,6 +214,7 @@ def test_widened_latents_decode_what_the_narrow_tokenizer_decoded() -> None:
         latents = torch.cat([small.mean, torch.randn(1, 1, 1, 4, 4, 8)], dim=3)
         torch.testing.assert_close(wide.decode(latents), narrow.decode(small.mean))
         torch.testing.assert_close(wide.distill(latents), narrow.distill(small.mean))
-    assert widen_latent_channels(narrow.state_dict(), narrow) is not None
+    same = narrow.state_dict()
+    assert widen_latent_channels(same, narrow) is same  # nothing to widen
     with pytest.raises(ValueError, match="10 latent channels, more than the net's 6"):
         widen_latent_channels(wide.state_dict(), narrow)
