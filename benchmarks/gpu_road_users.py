@@ -39,7 +39,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gaia_app.utils.run_dir import atomic_write_text  # noqa: E402
+from gaia_app.utils.run_dir import atomic_path, atomic_write_text  # noqa: E402
 from gaia_app.weights.checkpoints import read_checkpoint  # noqa: E402
 from gaia_app.weights.nets import NETS_RECORD  # noqa: E402
 
@@ -110,9 +110,8 @@ def slim_checkpoint(source: Path, target: Path) -> dict[str, Any]:
     state = {k: v.half() if v.is_floating_point() else v for k, v in checkpoint["state_dict"].items()}
     slim = {"state_dict": state, **{k: checkpoint[k] for k in ("hyper_parameters", NETS_RECORD, "global_step", "epoch")
                                     if k in checkpoint}}
-    partial = target.with_suffix(".partial")
-    torch.save(slim, partial)
-    partial.replace(target)
+    with atomic_path(target) as tmp:
+        torch.save(slim, tmp)
     return {"file": target.name, "megabytes": round(target.stat().st_size / 2**20, 2),
             "global_step": checkpoint.get("global_step")}
 
