@@ -33,10 +33,10 @@ from gaia_app.models.gaia1.world_model import WorldModel, next_token_loss
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
 
-def reference_net() -> WorldModel:
-    """The recipe's world model, built from its experiment config (random weights)."""
+def reference_net(experiment: str = "gaia1/reference/world_model") -> WorldModel:
+    """The world model of a world-model experiment config (the recipe's by default), random weights."""
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("train", overrides=["experiment=gaia1/reference/world_model"])
+        cfg = compose("train", overrides=[f"experiment={experiment}"])
     return instantiate(cfg.model.net)()
 
 
@@ -77,10 +77,12 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=2, help="untimed steps per precision")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--experiment", default="gaia1/reference/world_model",
+                        help="whose net (e.g. gaia1/road_users/world_model_d4: 448 tokens per frame)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    nets = {"float32": reference_net(), "bfloat16": reference_net()}
+    nets = {"float32": reference_net(args.experiment), "bfloat16": reference_net(args.experiment)}
     nets["bfloat16"].load_state_dict(nets["float32"].state_dict())
     steps = {name: make_step(net, args.batch, None if name == "float32" else torch.bfloat16, seed=1)
              for name, net in nets.items()}
