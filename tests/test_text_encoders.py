@@ -81,11 +81,25 @@ def test_minilm_cache_is_bounded_and_reused(minilm: MiniLMTextEncoder, monkeypat
     monkeypatch.setattr(minilm, "cache_size", 2)
     minilm.cache.clear()
     minilm([["a", "b", "c"]])
-    assert list(minilm.cache) == ["b", "c"]  # least recently used first out
+    assert list(minilm.cache) == minilm.key(["b", "c"])  # least recently used first out
     calls = []
     monkeypatch.setattr(minilm, "encode", lambda captions: calls.append(list(captions)) or [])
     minilm([["c", "b"]])
     assert calls == []  # both served from the cache, no forward of the network
+
+
+def test_minilm_captions_alike_in_their_first_m_tokens_share_one_encoding(minilm: MiniLMTextEncoder,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """A caption whose changing part (a speed) lies past its m-th token is served from the cache: keyed by the ids
+    the network sees, not by the string."""
+    minilm.cache.clear()
+    head = " ".join(["driving"] * M)
+    first = minilm([[f"{head} at 74 km/h"]])
+    encoded = []
+    original = minilm.encode
+    monkeypatch.setattr(minilm, "encode", lambda keys: encoded.append(list(keys)) or original(keys))
+    second = minilm([[f"{head} at 31 km/h"]])
+    assert encoded == [] and torch.equal(first, second) and len(minilm.cache) == 1
 
 
 def test_minilm_is_frozen_and_stays_in_eval(minilm: MiniLMTextEncoder) -> None:

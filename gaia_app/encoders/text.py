@@ -95,8 +95,8 @@ class PretrainedTextEncoder(nn.Module):
     the state dict (checkpoints stay small, `load_module` rebuilds it from the same local files), and
     a parent's `.train()` cannot switch its dropout on. It follows the module's device on first use;
     outputs take the module's float dtype (a non-persistent anchor buffer tracks both).
-    Encodings are cached per caption string (LRU, `cache_size` entries; 0 disables), since captions
-    repeat across time steps and batches.
+    Encodings are cached per caption's truncated token ids (LRU, `cache_size` entries; 0 disables), since
+    captions repeat across time steps and batches.
 
     Args:
         model, tokenizer: a loaded `transformers` encoder and its tokenizer.
@@ -112,7 +112,7 @@ class PretrainedTextEncoder(nn.Module):
         self.dim, self.tokens, self.source, self.cache_size = dim, tokens, source, cache_size
         self.tokenizer = tokenizer
         self.frozen = {"model": model.eval().requires_grad_(False)}
-        self.cache: OrderedDict[str, torch.Tensor] = OrderedDict()
+        self.cache: OrderedDict[tuple[int, ...], torch.Tensor] = OrderedDict()
         self.register_buffer("anchor", torch.zeros(0), persistent=False)
 
     def token_count(self, caption: str) -> int:
@@ -141,38 +141,50 @@ class PretrainedTextEncoder(nn.Module):
             out[i, : feature.shape[0]] = feature.to(out)
         return out.view(b, t, self.tokens, self.dim)
 
+    def key(self, captions: Sequence[str]) -> list[tuple[int, ...]]:
+        """Each caption's token ids as the network sees them: special tokens added, truncated to m, unpadded.
+        Captions that differ only after their first m tokens share a key, and so one cache entry."""
+        ids = self.tokenizer(list(captions), truncation=True, max_length=self.tokens)["input_ids"]
+        return [tuple(row) for row in ids]
+
     def lookup(self, captions: Sequence[str]) -> dict[str, torch.Tensor]:
-        """Features (k, e) of each distinct caption, k ≤ m its real tokens: cached, or encoded now."""
-        missing = [c for c in dict.fromkeys(captions) if c not in self.cache]
+        """Features (k, e) of each distinct caption, k ≤ m its real tokens: cached by token ids, or encoded now.
+
+        The cache is keyed by the truncated ids, not the string: captions that carry a changing number (a speed)
+        past their m-th token would otherwise miss it at almost every step."""
+        distinct = list(dict.fromkeys(captions))
+        keys = dict(zip(distinct, self.key(distinct)))
+        missing = [k for k in dict.fromkeys(keys.values()) if k not in self.cache]
         fresh = {}
         for start in range(0, len(missing), ENCODE_CHUNK):
             chunk = missing[start : start + ENCODE_CHUNK]
             fresh.update(zip(chunk, self.encode(chunk)))
-        found = {c: fresh[c] if c in fresh else self.cache[c] for c in dict.fromkeys(captions)}
-        for caption, feature in found.items():
-            self.remember(caption, feature)
-        return found
+        by_key = {k: fresh[k] if k in fresh else self.cache[k] for k in dict.fromkeys(keys.values())}
+        for key, feature in by_key.items():
+            self.remember(key, feature)
+        return {caption: by_key[key] for caption, key in keys.items()}
 
-    def remember(self, caption: str, feature: torch.Tensor) -> None:
+    def remember(self, key: tuple[int, ...], feature: torch.Tensor) -> None:
         """Insert or refresh one cache entry; the least recently used ones go past `cache_size`."""
         if self.cache_size <= 0:
             return
-        self.cache[caption] = feature
-        self.cache.move_to_end(caption)
+        self.cache[key] = feature
+        self.cache.move_to_end(key)
         while len(self.cache) > self.cache_size:
             self.cache.popitem(last=False)
 
     @torch.no_grad()
-    def encode(self, captions: Sequence[str]) -> list[torch.Tensor]:
-        """Run the network on captions → one (k, e) tensor each: the k unpadded token features."""
+    def encode(self, keys: Sequence[tuple[int, ...]]) -> list[torch.Tensor]:
+        """Run the network on captions given as token ids (`key`) → one (k, e) tensor each: the k token features,
+        the ids right-padded to m as the tokenizer would pad them."""
         model = self.model
         device = next(model.parameters()).device
-        batch = self.tokenizer(list(captions), padding="max_length", truncation=True, max_length=self.tokens,
-                               return_tensors="pt")
-        mask = batch["attention_mask"].to(device)
-        hidden = self.token_features(model, batch["input_ids"].to(device), mask)  # (c, m, e)
+        pad = self.tokenizer.pad_token_id or 0
+        input_ids = torch.tensor([list(k) + [pad] * (self.tokens - len(k)) for k in keys], device=device)
+        mask = torch.tensor([[1] * len(k) + [0] * (self.tokens - len(k)) for k in keys], device=device)
+        hidden = self.token_features(model, input_ids, mask)  # (c, m, e)
         # clone: a cached row must not keep the whole chunk's hidden states alive
-        return [h[:k].clone() for h, k in zip(hidden, mask.sum(1).tolist())]
+        return [h[: len(k)].clone() for h, k in zip(hidden, keys)]
 
     def token_features(self, model: nn.Module, input_ids: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """(c, m) token ids and mask → (c, m, e) features: the last hidden state."""
