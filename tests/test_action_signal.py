@@ -51,13 +51,13 @@ def test_layout_puts_each_kind_where_the_world_model_embeds_it():
 
 
 @pytest.mark.parametrize("rotary", [False, True])
-def test_attention_parts_add_up_to_the_attention_output(rotary):
+def test_attention_probs_and_value_writes_add_up_to_the_attention_output(rotary):
     torch.manual_seed(0)
     attn = CausalSelfAttention(dim=32, heads=4, kv_heads=2).eval()
     x = torch.randn(2, 10, 32)
     rot = StepRotary(8, 5)(0, 10, x.device) if rotary else None
     queries = torch.tensor([0, 3, 9])
-    probs, writes = attn.attention_parts(x, queries, rot)
+    probs, writes = attn.attention_probs(x, queries, rot), attn.value_writes(x)
     assert probs.shape == (2, 4, 3, 10) and writes.shape == (2, 4, 10, 32)
     assert torch.allclose(probs.sum(-1), torch.ones(2, 4, 3))
     assert probs[:, :, 0, 1:].abs().max() == 0  # the first position sees only itself

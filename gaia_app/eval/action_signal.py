@@ -97,9 +97,10 @@ def attention_statistics(net: WorldModel, streams: list[torch.Tensor], layout: L
         x = streams[layer]
         normed = block.norm1(x)
         rotary = rotary_net(0, x.shape[1], x.device) if rotary_net is not None else None
+        writes = block.attn.value_writes(normed)  # (b, h, L, d)
         for step in range(1, layout.steps):
             queries = layout.predicting(step).to(x.device)
-            probs, writes = block.attn.attention_parts(normed, queries, rotary)  # (b, h, k, L), (b, h, L, d)
+            probs = block.attn.attention_probs(normed, queries, rotary)  # (b, h, k, L)
             on_actions = probs * actions  # (b, h, k, L)
             previous = torch.zeros_like(actions)
             previous[layout.previous_actions(step).to(x.device)] = True

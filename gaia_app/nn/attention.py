@@ -185,27 +185,29 @@ class CausalSelfAttention(nn.Module):
             out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=dropout, **gqa)
         return self.to_out(out.transpose(1, 2).reshape(b, s, -1))
 
-    def attention_parts(self, x: torch.Tensor, queries: torch.Tensor,
-                        rotary: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """What a causal forward of x (b, s, d) computes for the query positions `queries` (k,) int64, spelled out
-        for diagnosis (gaia_app/eval/action_signal.py): the attention probabilities (b, h, k, s), zero on the
-        positions each query cannot see, and each key's value written to the residual stream by `to_out` for
-        every query head, (b, h, s, d), so that Σ_j probs[..., j, None] · writes[:, :, j] summed over heads is the
-        attention output at that query. Materialises (b, h, k, s): pass a few hundred queries at a time."""
+    def attention_probs(self, x: torch.Tensor, queries: torch.Tensor,
+                        rotary: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """The attention probabilities (b, h, k, s) that a causal forward of x (b, s, d) gives the query positions
+        `queries` (k,) int64, zero on the positions each query cannot see; for diagnosis
+        (gaia_app/eval/action_signal.py). Materialises (b, h, k, s): pass a few hundred queries at a time."""
         b, s, _ = x.shape
         q = self.to_q(x).view(b, s, self.heads, self.head_dim).transpose(1, 2)
-        k, v = self.to_kv(x).view(b, s, 2, self.kv_heads, self.head_dim).permute(2, 0, 3, 1, 4)
+        k, _ = self.to_kv(x).view(b, s, 2, self.kv_heads, self.head_dim).permute(2, 0, 3, 1, 4)
         if rotary is not None:
             q, k = rotate(q, *rotary), rotate(k, *rotary)
-        group = self.heads // self.kv_heads
-        k, v = k.repeat_interleave(group, dim=1), v.repeat_interleave(group, dim=1)  # (b, h, s, e)
+        k = k.repeat_interleave(self.heads // self.kv_heads, dim=1)  # (b, h, s, e)
         scores = q[:, :, queries] @ k.transpose(-1, -2) / self.head_dim ** 0.5  # (b, h, k, s)
         hidden = torch.arange(s, device=x.device)[None] > queries[:, None]  # (k, s): keys after the query
-        probs = scores.masked_fill(hidden, float("-inf")).softmax(dim=-1)
+        return scores.masked_fill(hidden, float("-inf")).softmax(dim=-1)
+
+    def value_writes(self, x: torch.Tensor) -> torch.Tensor:
+        """What each position's value adds to the residual stream through `to_out`, per query head: (b, h, s, d),
+        so that Σ_heads Σ_j attention_probs[..., j, None] · writes[:, :, j] is the attention output at a query."""
+        b, s, _ = x.shape
+        _, v = self.to_kv(x).view(b, s, 2, self.kv_heads, self.head_dim).permute(2, 0, 3, 1, 4)
+        v = v.repeat_interleave(self.heads // self.kv_heads, dim=1)  # (b, h, s, e)
         # to_out acts on heads concatenated along d: head i's slice of its weight maps that head's values
-        out_weight = self.to_out.weight.view(-1, self.heads, self.head_dim)  # (d, h, e)
-        writes = torch.einsum("bhse,dhe->bhsd", v, out_weight)
-        return probs, writes
+        return torch.einsum("bhse,dhe->bhsd", v, self.to_out.weight.view(-1, self.heads, self.head_dim))
 
     def decode_static(self, x: torch.Tensor, keys: torch.Tensor, values: torch.Tensor, slot: torch.Tensor,
                       rotary: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
