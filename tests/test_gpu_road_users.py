@@ -74,13 +74,45 @@ def test_a_failed_stage_is_recorded_and_stops_the_run(road_users, tmp_path: Path
 
 @pytest.mark.slow
 def test_dry_run_trains_every_stage_and_brings_back_loadable_checkpoints(road_users, tmp_path: Path) -> None:
-    data = road_users.main(["--out", str(tmp_path / "out"), "--work", str(tmp_path / "work"), "--dry-run"])
+    from gaia_app.encoders.text import minilm_package_path
+
+    data = road_users.main(["--out", str(tmp_path / "out"), "--work", str(tmp_path / "work"), "--dry-run",
+                            "--minilm", str(minilm_package_path())])
     stages = data["stages"]
-    assert all(stages[name]["status"] == "ok" for name in ("tokenizer_d4", "tokenizer_d4_long", "tokenize",
-                                                             "world_model")), stages
+    assert all(stages[name]["status"] == "ok" for name in ("tokenizer", "tokenize", "world_model", "paper_d4")), stages
+    paper = checkpoint_nets(tmp_path / "out/paper_d4.ckpt", "world_model", "world_model_ckpt")
+    assert not paper.nets["net"].action_shortcut and paper.config["text_encoder"]["path"] is None
     world_model = checkpoint_nets(tmp_path / "out/world_model_d4.ckpt", "world_model", "world_model_ckpt")
     tokenizer = checkpoint_nets(tmp_path / "out/tokenizer_d4.ckpt", "tokenizer", "tokenizer_ckpt")
     assert world_model.nets["net"].n == 448  # image tokens per frame
     grid = tokenizer.nets["net"].encode(torch.zeros(1, 3, 64, 112)).shape[-2:]
     assert grid[0] * grid[1] == 448
     assert len(list((tmp_path / "out").iterdir())) <= 8  # what a GPU machine brings back
+
+
+def test_world_models_side_by_side_each_get_their_log_and_status(road_users, tmp_path: Path) -> None:
+    report = road_users.Report(tmp_path, {"dry_run": True})
+    done = road_users.run_side_by_side(report, tmp_path, {"a": ["-c", "print('arm a')"],
+                                                          "b": ["-c", "import time; time.sleep(30)"]}, budget=5)
+    assert done == {"a": True, "b": False}
+    stages = json.loads((tmp_path / "road_users.json").read_text())["stages"]
+    assert stages["a"]["status"] == "ok" and stages["b"]["status"] == "timeout"
+    assert "arm a" in (tmp_path / "a.log").read_text()
+
+
+def test_the_paper_arm_trains_beside_only_with_minilm(road_users, tmp_path: Path) -> None:
+    alone = road_users.world_model_arms(tmp_path / "cache", tmp_path, 300, dry=False, minilm=None)
+    both = road_users.world_model_arms(tmp_path / "cache", tmp_path, 300, dry=False, minilm=tmp_path / "minilm")
+    assert list(alone) == ["world_model"] and list(both) == ["world_model", "paper_d4"]
+    assert "experiment=gaia1/paper_faithful/world_model_d4_gpu" in both["paper_d4"]
+    assert f"model.text_encoder.path={tmp_path / 'minilm'}" in both["paper_d4"]
+    assert both["world_model"] == alone["world_model"]  # the same wall clock and cache for both arms
+    assert both["paper_d4"][-4:-2] == [road_users.max_time(300), f"model.text_encoder.path={tmp_path / 'minilm'}"]
+
+
+def test_slim_paper_checkpoint_reads_minilm_from_its_package_again(road_users, tmp_path: Path) -> None:
+    cfg = {"text_encoder": {"_target_": "gaia_app.encoders.text.MiniLMTextEncoder", "path": "/tmp/road_users/minilm"}}
+    torch.save({"state_dict": {"net.w": torch.ones(2)}, "hyper_parameters": {"model_cfg": cfg}}, tmp_path / "l.ckpt")
+    road_users.slim_checkpoint(tmp_path / "l.ckpt", tmp_path / "slim.ckpt")
+    slim = torch.load(tmp_path / "slim.ckpt", weights_only=True)
+    assert slim["hyper_parameters"]["model_cfg"]["text_encoder"]["path"] is None

@@ -302,7 +302,8 @@ def load_local(directory: Path, model_class, model_type: str | tuple[str, ...], 
     if info["missing_keys"]:
         # the missing weights would be randomly initialised: refuse rather than condition on noise
         raise ValueError(f"'{directory}' lacks weights {sorted(info['missing_keys'])[:5]}…; {expected}")
-    return model, tokenizer
+    # transformers 5 keeps the files' dtype; a float16 copy (T5 overflows in it) computes in float32 like the original
+    return model.float(), tokenizer
 
 
 def check_shape(model: nn.Module, tokenizer, dim: int, tokens: int, source: str, width: int | None = None) -> None:
