@@ -215,3 +215,16 @@ def test_a_stored_decoder_sampler_is_built_only_from_the_diffusion_package(tmp_p
         with pytest.raises((UnsafeTargetError, UntrustedDataError), match="video decoder checkpoint's model config"):
             decoder_sampling({"sampler": sampler}, steps=None)
     assert not marker.exists()
+
+
+@pytest.mark.parametrize("path", ["agent_raster", "action_raster"])
+def test_a_conditioning_path_the_net_does_not_have_is_refused_by_its_key(tmp_path: Path, path: str) -> None:
+    """Issue 50: a GAIA-1 world-model YAML asking for one of GAIA-2's rasters names the key, not a TypeError."""
+    folder = tmp_path / "gaia1"
+    shutil.copytree(WEIGHTS_ROOT / "gaia1", folder)
+    config_path = folder / "world_model.yaml"
+    config = yaml.safe_load(config_path.read_text())
+    config["nets"]["net"][path] = True
+    config_path.write_text(yaml.safe_dump(config))
+    with pytest.raises(ValueError, match=rf"world_model\.yaml: nets\.net\.{path}: WorldModel has no argument '{path}'"):
+        load_nets(folder, "world_model")

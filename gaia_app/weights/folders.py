@@ -16,6 +16,8 @@ both files from a training checkpoint of this project; `load_nets` reads them ba
 
 from __future__ import annotations
 
+import functools
+import inspect
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -144,7 +146,21 @@ def build(config: Any, where: str = "net config") -> nn.Module:
     """A net from its Hydra config (a `_partial_` factory, as the training configs write them, or the class), checked
     first: plain data, nets and encoders of gaia_app only (`instantiate_checked`)."""
     made = instantiate_checked(config, where, SHIPPED_TARGETS)
+    if isinstance(made, functools.partial):
+        check_arguments(made, where)
     return made() if callable(made) and not isinstance(made, nn.Module) else made
+
+
+def check_arguments(factory: functools.partial, where: str) -> None:
+    """Every key of a net's config must be an argument of its class: a YAML that asks for a conditioning path the net
+    does not have (e.g. `agent_raster` on a GAIA-1 world model) is refused by that key, not by a TypeError."""
+    parameters = inspect.signature(factory.func).parameters
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+        return
+    unknown = sorted(set(factory.keywords) - set(parameters))
+    if unknown:
+        raise ValueError(f"{where}.{unknown[0]}: {factory.func.__name__} has no argument '{unknown[0]}' (a "
+                         f"conditioning path or setting this net does not have); it takes {sorted(parameters)}")
 
 
 def load_exactly(net: nn.Module, tensors: Mapping[str, torch.Tensor], where: str, hint: str = "") -> None:
