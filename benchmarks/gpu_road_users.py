@@ -71,10 +71,10 @@ STAGE_MARGIN_S = 45  # start-up and checkpoint writing after +trainer.max_time s
 
 
 class Report:
-    """Stages so far, rewritten to DIR/road_users.json after each."""
+    """Stages so far, rewritten to DIR/<name> (road_users.json) after each."""
 
-    def __init__(self, out: Path, meta: dict[str, Any]):
-        self.path, self.data = out / "road_users.json", {"meta": meta, "stages": {}}
+    def __init__(self, out: Path, meta: dict[str, Any], name: str = "road_users.json"):
+        self.path, self.data = out / name, {"meta": meta, "stages": {}}
         out.mkdir(parents=True, exist_ok=True)
 
     def save(self, name: str, result: dict[str, Any]) -> None:
