@@ -9,10 +9,13 @@ Paths, alternated `--repeats` times (medians):
   window per step the previous implementation: every step samples through a fresh window of the last T − 1
                   frames (`Gaia1Pipeline.sample_batch` with one lead step), i.e. re-prefills every step
   full recompute  the session with the sampler's KV cache off (the whole window re-run at every token)
+  session, compiled decode   (--compiled) the session with `token_sampler.decode_step=compiled`: each token after
+                  a frame's first decoded by the torch.compile'd fixed-shape step on a static KV cache (issue 51)
 for the shipped reference weights (learned time), and for a world model of the same layout with rotary time
 (random weights: `--rope`), where a slide drops the oldest step from the cache. Real-time ratio: frames/s ÷ 6.25.
 
     python benchmarks/bench_simulator_step.py --steps 16 --repeats 3 --rope
+    python benchmarks/bench_simulator_step.py --steps 16 --repeats 3 --full-steps 0 --compiled
 """
 
 from __future__ import annotations
@@ -78,13 +81,19 @@ def rope_pipeline(shipped: Gaia1Pipeline) -> Gaia1Pipeline:
     return Gaia1Pipeline(shipped.tokenizer, WorldModel(**layout).eval(), shipped.image_size, rate=shipped.rate)
 
 
-def paths(pipeline: Gaia1Pipeline, full: bool) -> dict[str, DrivingSimulator]:
+def with_sampler(pipeline: Gaia1Pipeline, sampler: AutoregressiveSampler) -> DrivingSimulator:
+    """A simulator over the same nets, sampling with `sampler`."""
+    return DrivingSimulator(Gaia1Pipeline(pipeline.tokenizer, pipeline.world_model, pipeline.image_size,
+                                          sampler=sampler, rate=pipeline.rate))
+
+
+def paths(pipeline: Gaia1Pipeline, full: bool, compiled: bool = False) -> dict[str, DrivingSimulator]:
     envs = {"session": DrivingSimulator(pipeline), "window per step": window_per_step(pipeline)}
+    picker = pipeline.rollouts.sampler.picker
+    if compiled:
+        envs["session, compiled decode"] = with_sampler(pipeline, AutoregressiveSampler(picker, decode_step="compiled"))
     if full:
-        uncached = Gaia1Pipeline(pipeline.tokenizer, pipeline.world_model, pipeline.image_size,
-                                 sampler=AutoregressiveSampler(pipeline.rollouts.sampler.picker, use_cache=False),
-                                 rate=pipeline.rate)
-        envs["full recompute"] = DrivingSimulator(uncached)
+        envs["full recompute"] = with_sampler(pipeline, AutoregressiveSampler(picker, use_cache=False))
     return envs
 
 
@@ -94,6 +103,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--rope", action="store_true", help="also a rotary-time world model of the shipped layout")
     parser.add_argument("--full-steps", type=int, default=2, help="steps of the (slow) full-recompute path; 0: skip")
+    parser.add_argument("--compiled", action="store_true", help="also the session with the compiled decode step")
     parser.add_argument("--out", default="outputs/bench_simulator_step.json")
     args = parser.parse_args()
     shipped = Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=False)
@@ -101,7 +111,7 @@ def main() -> None:
                                                     if args.rope else {})
     results: dict[str, Any] = {"threads": torch.get_num_threads(), "steps": args.steps}
     for label, pipeline in models.items():
-        envs = paths(pipeline, args.full_steps > 0)
+        envs = paths(pipeline, args.full_steps > 0, args.compiled)
         runs: dict[str, list[float]] = {name: [] for name in envs}
         for env in envs.values():  # warm-up
             episode_rate(env, 1, seed=99)
@@ -112,11 +122,16 @@ def main() -> None:
         row = {name: {"frames_per_s": statistics.median(r), "real_time_ratio": statistics.median(r) / REAL_TIME_HZ,
                       "runs": r} for name, r in runs.items()}
         row["session_over_window_per_step"] = row["session"]["frames_per_s"] / row["window per step"]["frames_per_s"]
+        if args.compiled:
+            compiled_rate = row["session, compiled decode"]["frames_per_s"]
+            row["compiled_over_session"] = compiled_rate / row["session"]["frames_per_s"]
         results[label] = row
         for name in envs:
             print(f"{label} {name}: {row[name]['frames_per_s']:.2f} frames/s "
                   f"({row[name]['real_time_ratio']:.2f}× real time)")
         print(f"{label}: session / window per step {row['session_over_window_per_step']:.2f}×")
+        if args.compiled:
+            print(f"{label}: compiled decode / session {row['compiled_over_session']:.2f}×")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2))
 
