@@ -128,7 +128,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if not args.dry_run and not torch.cuda.is_available():
         raise SystemExit("gpu_paper_faithful.py needs CUDA (or --dry-run for tiny sizes on a CPU)")
     start = time.monotonic()
-    left = lambda: args.budget_s - (time.monotonic() - start)  # noqa: E731
+
+    def left() -> float:
+        """Seconds of --budget-s not yet spent."""
+        return args.budget_s - (time.monotonic() - start)
+
     report = Report(args.out, {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                                "torch": torch.__version__, "dry_run": args.dry_run}, "paper_faithful.json")
     cache, back = args.work / "tokens_d4", args.work / "back"  # back: what ladder.tar gathers (≤ 8 files return)

@@ -103,6 +103,12 @@ def run_stage(report: Report, out: Path, name: str, commands: list[list[str]], b
             if done.returncode:
                 status = f"exit {done.returncode}"
                 break
+    return finish_stage(report, log, name, status, start, budget, commands)
+
+
+def finish_stage(report: Report, log: Path, name: str, status: str, start: float, budget: float,
+                 commands: list[list[str]]) -> bool:
+    """Keep the log's tail and record the stage (status, seconds, budget, commands); True when it ran through."""
     keep_tail(log)
     report.save(name, {"status": status, "seconds": round(time.monotonic() - start, 1), "budget_s": round(budget),
                        "commands": [" ".join(["python", *argv]) for argv in commands]})
@@ -176,10 +182,7 @@ def run_side_by_side(report: Report, out: Path, arms: dict[str, list[str]], budg
             process.wait()
             status = "timeout"
         sink.close()
-        keep_tail(out / f"{name}.log")
-        report.save(name, {"status": status, "seconds": round(time.monotonic() - start, 1), "budget_s": round(budget),
-                           "commands": [" ".join(["python", *arms[name]])]})
-        done[name] = status == "ok"
+        done[name] = finish_stage(report, out / f"{name}.log", name, status, start, budget, [arms[name]])
     return done
 
 
@@ -262,8 +265,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     minilm = paper_arm(report, args.minilm, args.work, cache)
     left = max(args.budget_s - (time.monotonic() - start), 60)
     run_side_by_side(report, args.out, world_model_arms(cache, args.work, left, args.dry_run, minilm), left)
-    for name, run in (("world_model_d4", "world_model_d4"), ("paper_d4", "paper_d4")):
-        last = args.work / run / "checkpoints/last.ckpt"
+    for name in ("world_model_d4", "paper_d4"):
+        last = args.work / name / "checkpoints/last.ckpt"
         if last.is_file():  # a stage stopped at its budget still keeps its last checkpoint
             report.save(f"{name}_checkpoint", slim_checkpoint(last, args.out / f"{name}.ckpt"))
     return report.data
