@@ -16,6 +16,7 @@ for the shipped reference weights (learned time), and for a world model of the s
 
     python benchmarks/bench_simulator_step.py --steps 16 --repeats 3 --rope
     python benchmarks/bench_simulator_step.py --steps 16 --repeats 3 --full-steps 0 --compiled
+    python benchmarks/bench_simulator_step.py --steps 16 --repeats 5 --full-steps 0 --compiled --profile 4
 """
 
 from __future__ import annotations
@@ -97,6 +98,15 @@ def paths(pipeline: Gaia1Pipeline, full: bool, compiled: bool = False) -> dict[s
     return envs
 
 
+def profile_table(env: DrivingSimulator, steps: int, rows: int = 12) -> str:
+    """torch.profiler's operators by self CPU time over `steps` steps of a warm env: where a step's time goes."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        episode_rate(env, steps, seed=0)
+    return prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=rows)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=int, default=16)
@@ -104,6 +114,9 @@ def main() -> None:
     parser.add_argument("--rope", action="store_true", help="also a rotary-time world model of the shipped layout")
     parser.add_argument("--full-steps", type=int, default=2, help="steps of the (slow) full-recompute path; 0: skip")
     parser.add_argument("--compiled", action="store_true", help="also the session with the compiled decode step")
+    parser.add_argument("--profile", type=int, default=0,
+                        help="after the timed runs, print torch.profiler's top operators over this many steps of the "
+                             "session (with --compiled: of the compiled session)")
     parser.add_argument("--out", default="outputs/bench_simulator_step.json")
     args = parser.parse_args()
     shipped = Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=False)
@@ -126,6 +139,8 @@ def main() -> None:
             compiled_rate = row["session, compiled decode"]["frames_per_s"]
             row["compiled_over_session"] = compiled_rate / row["session"]["frames_per_s"]
         results[label] = row
+        if args.profile:
+            print(profile_table(envs["session, compiled decode" if args.compiled else "session"], args.profile))
         for name in envs:
             print(f"{label} {name}: {row[name]['frames_per_s']:.2f} frames/s "
                   f"({row[name]['real_time_ratio']:.2f}× real time)")

@@ -18,3 +18,10 @@ def test_the_compiled_path_is_the_session_with_the_compiled_decode_step() -> Non
     assert samplers["full recompute"].use_cache is False
     assert all(env.pipeline.world_model is pipeline.world_model for env in envs.values())  # the same nets
     assert list(bench.paths(pipeline, full=False)) == ["session", "window per step"]
+
+
+def test_the_profile_names_the_operators_of_a_step() -> None:
+    bench = load_benchmark("bench_simulator_step")
+    env = bench.paths(Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=False), full=False)["session"]
+    table = bench.profile_table(env, steps=1)
+    assert "Self CPU" in table and "aten::" in table

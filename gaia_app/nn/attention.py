@@ -225,7 +225,10 @@ class CausalSelfAttention(nn.Module):
         index = slot.view(1)
         keys[:, :, index] = k  # index_put_: stays in place when compiled (the cache is never copied)
         values[:, :, index] = v
-        visible = (torch.arange(keys.shape[2], device=x.device) <= slot)[None]  # (1 query, C keys)
-        gqa = {"enable_gqa": True} if self.kv_heads != self.heads else {}
-        out = F.scaled_dot_product_attention(q, keys, values, attn_mask=visible, **gqa)
-        return self.to_out(out.transpose(1, 2).reshape(b, 1, -1))
+        # one query: two small matmuls and a softmax, which the compiler fuses; SDPA's CPU flash kernel, tiled for
+        # many queries, cost 95 µs a call here, a third of the compiled step (docs/benchmarks.md, issue 51 item 4)
+        q = q.reshape(b, self.kv_heads, self.heads // self.kv_heads, self.head_dim)  # (b, g, r, e): r heads per K/V
+        scores = (q @ keys.transpose(-1, -2)) * self.head_dim ** -0.5  # (b, g, r, C)
+        hidden = torch.arange(keys.shape[2], device=x.device) > slot  # (C,) slots not written yet
+        out = scores.masked_fill(hidden, float("-inf")).softmax(dim=-1) @ values  # (b, g, r, e)
+        return self.to_out(out.reshape(b, 1, -1))
