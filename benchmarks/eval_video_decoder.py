@@ -14,6 +14,8 @@ Decodes the ground-truth tokens of held-out clips (N frames at 6.25 Hz, the vali
   mean<k>     the conditional-mean estimate: one-step x̂₀ averaged over k noise draws (OneStepMeanSampler)
   amean<k>    the same over k/2 antithetic pairs of draws (x_T, −x_T), if asked
   dpm<k>      DPM-Solver++(2M) with k steps, if asked (--samplers)
+  sddim<k>    DDIM with k steps from one initial noise shared by the frames of each window (a diagnosis of where
+              flicker comes from, if asked; the decoder was trained with independent noise per frame)
 and reports, per row, PSNR against the true frames and temporal flicker (mean |Δdecoded − Δtrue| of consecutive
 frames, gaia_app.eval.metrics.temporal_flicker; lower is steadier), each a mean over clips with a 95 % interval,
 and the paired difference to framewise with its interval. Then the temporal upsampling 6.25 → 12.5 → 25 Hz against
@@ -49,7 +51,7 @@ from gaia_app.utils.run_dir import atomic_path, atomic_write_text
 from gaia_app.viz.media import to_hwc_uint8
 
 # rows: ddim<k> (k DDIM steps), dpm<k> (DPM-Solver++ k steps), mean<k> (OneStepMeanSampler, k noise draws),
-# amean<k> (k/2 antithetic pairs), zero (x̂0 from x_T = 0, one evaluation)
+# amean<k> (k/2 antithetic pairs), zero (x̂0 from x_T = 0, one evaluation), sddim<k> (SharedStart)
 SAMPLERS = {"ddim": DDIMSampler, "dpm": DPMSolverSampler, "mean": OneStepMeanSampler,
             "amean": partial(OneStepMeanSampler, antithetic=True)}
 DEFAULT_SAMPLERS = "ddim1,ddim5,ddim10,ddim20,ddim50,zero,mean4,mean16"
@@ -177,6 +179,18 @@ class MeanStart:  # the "zero" row
         return inner(denoise, torch.zeros_like(noise), generator=generator, callback=callback)
 
 
+class SharedStart:  # the "sddim<k>" rows
+    """DDIM with k steps whose x_T is the first frame's noise repeated over the window's frames (b, t, ...)."""
+
+    def __init__(self, schedule, steps: int):
+        self.inner, self.clip_x0 = DDIMSampler(schedule, steps=steps), True
+
+    def __call__(self, denoise, noise, generator=None, callback=None):
+        inner = copy.copy(self.inner)
+        inner.clip_x0 = self.clip_x0
+        return inner(denoise, noise[:, :1].expand_as(noise).contiguous(), generator=generator, callback=callback)
+
+
 def frames_per_second(pipe: VideoDecodingPipeline, tokens: torch.Tensor) -> float:
     """25 Hz output frames per second of the whole §5.2 path (decode + two doublings) for tokens (b, N, h, w)."""
     pipe(tokens[:, :pipe.frames], upsample=0, generator=torch.Generator().manual_seed(0))  # warm-up
@@ -227,8 +241,11 @@ def sampler_for(name: str, schedule):
     if name == "zero":
         return MeanStart(schedule)
     kind, count = name.rstrip("0123456789"), name[len(name.rstrip("0123456789")):]
+    if kind == "sddim" and count:
+        return SharedStart(schedule, int(count))
     if kind not in SAMPLERS or not count:
-        raise ValueError(f"--samplers: unknown row {name!r}; expected ddim<k>, dpm<k>, mean<k>, amean<k> or zero")
+        raise ValueError(f"--samplers: unknown row {name!r}; expected ddim<k>, sddim<k>, dpm<k>, mean<k>, amean<k> "
+                         "or zero")
     if kind.endswith("mean"):
         return SAMPLERS[kind](schedule, draws=int(count))
     return SAMPLERS[kind](schedule, steps=int(count))

@@ -31,3 +31,26 @@ def test_shipped_decoder_needs_a_world_and_an_out_folder(monkeypatch) -> None:
     monkeypatch.setattr(sys, "argv", ["eval_video_decoder.py", "--weights=gaia1"])
     with pytest.raises(SystemExit):
         eval_video_decoder.main()
+
+
+def test_the_shared_start_row_runs_ddim_from_one_noise_per_window() -> None:
+    sys.path.insert(0, str(BENCHMARKS))
+    import eval_video_decoder
+    import torch
+
+    from gaia_app.diffusion.noise_schedule import CosineNoiseSchedule
+
+    sampler = eval_video_decoder.sampler_for("sddim3", CosineNoiseSchedule(100))
+    seen = []
+
+    def denoise(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        seen.append(x.clone())
+        return torch.zeros_like(x)
+
+    noise = torch.randn(2, 4, 3, 5, 6)
+    sampler(denoise, noise)
+    assert len(seen) == 3 and sampler.inner.steps == 3
+    assert torch.equal(seen[0], noise[:, :1].expand_as(noise))  # every frame starts from the first frame's noise
+    assert not torch.equal(noise[:, 0], noise[:, 1])
+    with pytest.raises(ValueError, match="sddim<k>"):
+        eval_video_decoder.sampler_for("sddim", CosineNoiseSchedule(100))
