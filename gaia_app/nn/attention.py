@@ -230,5 +230,7 @@ class CausalSelfAttention(nn.Module):
         q = q.reshape(b, self.kv_heads, self.heads // self.kv_heads, self.head_dim)  # (b, g, r, e): r heads per K/V
         scores = (q @ keys.transpose(-1, -2)) * self.head_dim ** -0.5  # (b, g, r, C)
         hidden = torch.arange(keys.shape[2], device=x.device) > slot  # (C,) slots not written yet
-        out = scores.masked_fill(hidden, float("-inf")).softmax(dim=-1) @ values  # (b, g, r, e)
+        # softmax in float32 as SDPA's kernels do inside, so that a bfloat16 net keeps eager's rounding
+        probs = scores.masked_fill(hidden, float("-inf")).softmax(dim=-1, dtype=torch.float32).to(values.dtype)
+        out = probs @ values  # (b, g, r, e)
         return self.to_out(out.reshape(b, 1, -1))
