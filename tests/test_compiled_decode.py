@@ -179,3 +179,24 @@ def test_a_failing_compile_falls_back_to_eager_with_one_warning(monkeypatch, cap
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1 and "\n" not in warnings[0]
     assert "no working C++ compiler" in warnings[0] and "decoding eagerly" in warnings[0]
+
+
+def test_one_compiled_sampler_with_and_without_shared_noise(monkeypatch, step_calls: list[int]) -> None:
+    """A warm compiled step runs without Dynamo's guards, so a session whose step takes other inputs (shared noise
+    or none) must get its own step: the same sampler, independent draws first, then futures sharing their noise."""
+    monkeypatch.setattr(compiled_decode, "compile_options", lambda device: {"backend": "aot_eager", "fullgraph": True})
+    net = tiny("rope", shortcuts=True)
+    context = torch.randint(0, V, (2, 2, N), generator=torch.Generator().manual_seed(2))
+    text = torch.randn(2, 2 + T, M, E, generator=torch.Generator().manual_seed(3))
+    compiled_sampler = AutoregressiveSampler(TokenPicker("top_k", k=6), decode_step="compiled")
+
+    def tokens(sampler: AutoregressiveSampler, groups: torch.Tensor | None) -> torch.Tensor:
+        pipe = WorldModelRolloutPipeline(net, sampler, ClassifierFreeGuidance(3.0, LinearSchedule()))
+        return pipe(context, T, text=text, num_futures=3, generator=torch.Generator().manual_seed(0),
+                    noise_groups=groups).tokens
+
+    groups = torch.tensor([0, 1])
+    for shared in (None, groups, None):
+        eager = tokens(AutoregressiveSampler(TokenPicker("top_k", k=6)), shared)
+        assert torch.equal(tokens(compiled_sampler, shared), eager)
+    assert compiled_sampler.steps.failure is None and step_calls

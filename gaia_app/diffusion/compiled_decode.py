@@ -123,7 +123,8 @@ class FixedStep:
             return out
         # Dynamo re-checks ≈ every buffer and parameter before each call (143 µs of a 1.1 ms step on a 2-core CPU).
         # Nothing those guards watch changes between a warm step's calls: the inputs' shapes, dtypes and None-ness
-        # are fixed by the pool's key, the buffers are static. So only the guards that tell compiled graphs apart run.
+        # (shared noise or not, guidance or not) and autocast are fixed by the pool's key, the buffers are static.
+        # So only the guards that tell compiled graphs apart run.
         with torch.compiler.set_stance("default", skip_guard_eval_unsafe=True):
             return self.run(*inputs)
 
@@ -166,9 +167,10 @@ class StepPool:
     def acquire(self, session: SamplingSession, capacity: int) -> FixedStep | None:
         net, tokens, streams = session.net, session.tokens, session.streams
         device = tokens.device
+        # everything that changes the step's graph: a warm compiled step skips Dynamo's guards (FixedStep.__call__)
         key = (id(net), streams.text.shape[0], tokens.shape[0], tokens.shape[2], tuple(streams.actions.shape[2:]),
                streams.actions.dtype, capacity, cache_dtype(net, device), device, session.sampler.picker,
-               session.guidance)
+               session.guidance, session.noise_groups is None, torch.is_autocast_enabled(device.type))
         for step in self.steps:
             if step.key == key and step.module.net is net and step.free_for(session):
                 return step
