@@ -51,7 +51,7 @@ from gaia_app.utils.run_dir import atomic_path, atomic_write_text
 from gaia_app.viz.media import to_hwc_uint8
 
 # rows: ddim<k> (k DDIM steps), dpm<k> (DPM-Solver++ k steps), mean<k> (OneStepMeanSampler, k noise draws),
-# amean<k> (k/2 antithetic pairs), zero (x̂0 from x_T = 0, one evaluation), sddim<k> (SharedStart)
+# amean<k> (k/2 antithetic pairs), zero (x̂0 from x_T = 0, one evaluation), sddim<k> (StartedDDIM)
 SAMPLERS = {"ddim": DDIMSampler, "dpm": DPMSolverSampler, "mean": OneStepMeanSampler,
             "amean": partial(OneStepMeanSampler, antithetic=True)}
 DEFAULT_SAMPLERS = "ddim1,ddim5,ddim10,ddim20,ddim50,zero,mean4,mean16"
@@ -167,28 +167,25 @@ def plot_steps(path: Path, results: dict) -> None:
     plt.close(fig)
 
 
-class MeanStart:  # the "zero" row
-    """DDIM with one step run from x_T = 0 instead of noise: the deterministic one-step x̂₀ (the conditional mean)."""
+class StartedDDIM:  # the "zero" and "sddim<k>" rows
+    """DDIM with k steps from an x_T made from the drawn noise (b, t, ...) by `start`: zeros (the deterministic
+    one-step x̂₀, the conditional mean) or the first frame's noise repeated over the window's frames."""
 
-    def __init__(self, schedule):
-        self.inner, self.clip_x0 = DDIMSampler(schedule, steps=1), True
+    def __init__(self, schedule, steps: int, start):
+        self.inner, self.start, self.clip_x0 = DDIMSampler(schedule, steps=steps), start, True
 
     def __call__(self, denoise, noise, generator=None, callback=None):
         inner = copy.copy(self.inner)
         inner.clip_x0 = self.clip_x0  # sample_window moves the clip into the denoiser for a residual decoder
-        return inner(denoise, torch.zeros_like(noise), generator=generator, callback=callback)
+        return inner(denoise, self.start(noise), generator=generator, callback=callback)
 
 
-class SharedStart:  # the "sddim<k>" rows
-    """DDIM with k steps whose x_T is the first frame's noise repeated over the window's frames (b, t, ...)."""
+def zero_start(noise: torch.Tensor) -> torch.Tensor:
+    return torch.zeros_like(noise)
 
-    def __init__(self, schedule, steps: int):
-        self.inner, self.clip_x0 = DDIMSampler(schedule, steps=steps), True
 
-    def __call__(self, denoise, noise, generator=None, callback=None):
-        inner = copy.copy(self.inner)
-        inner.clip_x0 = self.clip_x0
-        return inner(denoise, noise[:, :1].expand_as(noise).contiguous(), generator=generator, callback=callback)
+def shared_start(noise: torch.Tensor) -> torch.Tensor:
+    return noise[:, :1].expand_as(noise).contiguous()
 
 
 def frames_per_second(pipe: VideoDecodingPipeline, tokens: torch.Tensor) -> float:
@@ -239,10 +236,10 @@ def write_strip(path: Path, rows: list[torch.Tensor]) -> None:
 def sampler_for(name: str, schedule):
     """A row name of SAMPLERS (ddim50, mean16, zero, …) → its sampler."""
     if name == "zero":
-        return MeanStart(schedule)
+        return StartedDDIM(schedule, 1, zero_start)
     kind, count = name.rstrip("0123456789"), name[len(name.rstrip("0123456789")):]
     if kind == "sddim" and count:
-        return SharedStart(schedule, int(count))
+        return StartedDDIM(schedule, int(count), shared_start)
     if kind not in SAMPLERS or not count:
         raise ValueError(f"--samplers: unknown row {name!r}; expected ddim<k>, sddim<k>, dpm<k>, mean<k>, amean<k> "
                          "or zero")

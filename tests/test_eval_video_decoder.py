@@ -33,7 +33,7 @@ def test_shipped_decoder_needs_a_world_and_an_out_folder(monkeypatch) -> None:
         eval_video_decoder.main()
 
 
-def test_the_shared_start_row_runs_ddim_from_one_noise_per_window() -> None:
+def test_the_started_rows_run_ddim_from_a_noise_made_from_the_draw() -> None:
     sys.path.insert(0, str(BENCHMARKS))
     import eval_video_decoder
     import torch
@@ -52,5 +52,8 @@ def test_the_shared_start_row_runs_ddim_from_one_noise_per_window() -> None:
     assert len(seen) == 3 and sampler.inner.steps == 3
     assert torch.equal(seen[0], noise[:, :1].expand_as(noise))  # every frame starts from the first frame's noise
     assert not torch.equal(noise[:, 0], noise[:, 1])
+    seen.clear()
+    eval_video_decoder.sampler_for("zero", CosineNoiseSchedule(100))(denoise, noise)
+    assert len(seen) == 1 and not seen[0].any()  # the "zero" row: one step from x_T = 0
     with pytest.raises(ValueError, match="sddim<k>"):
         eval_video_decoder.sampler_for("sddim", CosineNoiseSchedule(100))
