@@ -72,7 +72,7 @@ def test_statistics_are_shaped_and_bounded():
     layout = Layout(net.m, net.n, net.l, net.frames)
     for row in results["layers"]:
         assert len(row["mass_all"]) == 4 and all(0 <= v <= 1 for v in row["mass_all"])
-        assert all(p <= a + 1e-9 for p, a in zip(row["mass_previous"], row["mass_all"]))
+        assert all(p <= a + 1e-9 for p, a in zip(row["mass_nearest"], row["mass_all"]))
         assert row["uniform_all"] == pytest.approx(uniform_share(layout))
         assert row["write"] > 0
     assert results["kl_nats"] > 0
@@ -111,6 +111,73 @@ def test_the_mass_follows_attention_that_is_steered_to_the_action_tokens():
     assert results["layers"][0]["uniform_all"] < 0.2
 
 
+def with_text(net: WorldModel, batches: list[tuple[torch.Tensor, torch.Tensor]], seed: int = 2
+              ) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """The windows with random encoded captions (b, T, m, e) as a third element."""
+    g = torch.Generator().manual_seed(seed)
+    return [(tokens, actions, torch.randn(*tokens.shape[:2], net.m, net.conditioner.text_proj.in_features,
+                                          generator=g)) for tokens, actions in batches]
+
+
+def test_the_text_stream_is_read_like_the_actions():
+    """--stream text: the caption tokens get the same statistics; they enter only through attention (no shortcut), and
+    its gradients are the text projection's."""
+    net = tiny_net(action_shortcut=True)
+    results = action_signal(net, with_text(net, windows(net)), stream="text")
+    assert results["stream"] == "text" and results["windows"] == 3
+    layout = Layout(net.m, net.n, net.l, net.frames)
+    text = layout.kinds()["text"]
+    shares = [float(text[: q + 1].sum()) / (q + 1)
+              for step in range(1, layout.steps) for q in layout.predicting(step).tolist()]
+    for row in results["layers"]:
+        assert row["uniform_all"] == pytest.approx(sum(shares) / len(shares))
+        assert all(p <= a + 1e-9 for p, a in zip(row["mass_nearest"], row["mass_all"]))
+    # at the embedding only the last text token of each step (it predicts z_{t,0}) is itself text; the action shortcut
+    # adds only the null action to the image positions (their norms move a little), since the actions are held null
+    plain = action_signal(tiny_net(), with_text(net, windows(net)), stream="text")
+    assert 0 < results["counterfactual"][0] == pytest.approx(plain["counterfactual"][0], rel=0.01)
+    assert results["counterfactual"][-1] > results["counterfactual"][0]
+    assert results["kl_nats"] > 0
+    assert set(results["grad_relative"]) == {"text_weight", "text_bias", "token_embedding"}
+    assert "stream: text" in markdown(results, "tiny") and "this step's caption" in markdown(results, "tiny")
+
+
+def test_the_nearest_text_is_the_caption_of_the_predicted_step():
+    layout = Layout(m=2, n=3, l=2, steps=3)
+    assert layout.nearest("text", 1).tolist() == [7, 8]  # step 1 starts at 7: its caption, then its image tokens
+    assert layout.kinds()["text"][7] and layout.kinds()["text"][8]
+    assert layout.nearest("actions", 1).tolist() == layout.previous_actions(1).tolist()
+
+
+def test_the_mass_follows_attention_that_is_steered_to_the_text_tokens():
+    """Keys large only where the text projection writes (direction e0): the text mass reads nearly all attention,
+    the action mass none of it."""
+    net = tiny_net(depth=1)
+    e0, e1 = torch.eye(32)[0], torch.eye(32)[1]
+    with torch.no_grad():
+        net.conditioner.text_proj.weight.zero_()
+        net.conditioner.text_proj.bias.copy_(e0 * 30)
+        net.spatial.add_(e1)
+        attn = net.transformer.blocks[0].attn
+        attn.to_q.weight.zero_()
+        attn.to_q.weight[:, 1] = 5.0
+        attn.to_kv.weight.zero_()
+        attn.to_kv.weight[:16, 0] = 5.0
+    batches = with_text(net, windows(net))
+    text = action_signal(net, batches, stream="text")
+    actions = action_signal(net, batches, stream="actions")
+    assert min(text["layers"][0]["mass_all"]) > 0.9
+    assert max(actions["layers"][0]["mass_all"]) < 0.05
+
+
+def test_the_text_stream_needs_captions():
+    net = tiny_net()
+    with pytest.raises(ValueError, match="needs encoded captions"):
+        action_signal(net, windows(net), stream="text")
+    with pytest.raises(ValueError, match="stream 'speech'"):
+        action_signal(net, windows(net), stream="speech")
+
+
 def test_windows_that_do_not_fit_the_model_are_refused():
     net = tiny_net()
     tokens, actions = windows(net)[0]
@@ -138,8 +205,28 @@ def test_report_on_the_shipped_weights_and_a_token_cache(tmp_path):
     # docs/paper_faithful.md: after its long training one layer-0 head of the shipped model reads the action tokens
     # (0.23 of its attention on held-out windows, 0.21 on these random ones, against a uniform share of 0.015)
     layer0 = saved["shipped"]["layers"][0]
-    assert max(layer0["mass_all"]) > 5 * layer0["uniform_all"] and max(layer0["mass_previous"]) > 0.05
+    assert max(layer0["mass_all"]) > 5 * layer0["uniform_all"] and max(layer0["mass_nearest"]) > 0.05
     assert "**shipped**" in (tmp_path / "out" / "action_signal.md").read_text()
+
+
+def test_text_report_on_the_shipped_weights_and_a_captioned_cache(tmp_path):
+    """--stream text end to end: the shipped model's own (learned keyword) text encoder reads the cache's captions."""
+    from gaia_app.weights.folders import shipped_folder
+
+    rng = np.random.default_rng(0)
+    captions = ["driving at night. snow is falling."] * 12
+    actions = np.stack([rng.uniform(4, 16, 12), rng.uniform(-0.02, 0.02, 12)], -1).astype(np.float32)
+    write_segment(tmp_path / "tokens" / "val", TokenSegment("clip", rng.integers(0, 1024, (12, 8, 14)), actions,
+                                                            text=captions))
+    results = main(["--model", f"shipped={shipped_folder('gaia1')}", "--tokens", str(tmp_path / "tokens"),
+                    "--out", str(tmp_path / "out"), "--windows", "1", "--stream", "text"])
+    assert results["shipped"]["stream"] == "text"
+    assert results["shipped"]["kl_nats"] > 0  # the prompt changes the shipped model's predictions
+    assert (tmp_path / "out" / "text_signal.json").exists() and (tmp_path / "out" / "text_signal.md").exists()
+    write_segment(tmp_path / "bare" / "val", TokenSegment("clip", rng.integers(0, 1024, (12, 8, 14)), actions))
+    with pytest.raises(ValueError, match="no captions"):
+        main(["--model", f"shipped={shipped_folder('gaia1')}", "--tokens", str(tmp_path / "bare"),
+              "--out", str(tmp_path / "out"), "--windows", "1", "--stream", "text"])
 
 
 def test_model_arguments_are_checked(tmp_path):
