@@ -46,10 +46,12 @@ from gaia_app.eval.agent_fidelity import (
     fidelity_frames,
     finite_interval,
     iou_ratio,
+    iou_ratio_by_frame,
     iou_ratio_difference,
     lead_found,
     lead_share,
     per_clip_overlap,
+    per_frame_overlap,
     region_lpips,
     region_psnr,
 )
@@ -187,6 +189,9 @@ def score(probe: AgentSegmentationProbe, held: FidelityFrames, tokenized: torch.
     overlap = {k: per_clip_overlap(v, held.agents) for k, v in predicted.items()}
     out: dict[str, Any] = {"agent_iou": {k: float(i.sum() / max(u.sum(), 1)) for k, (i, u) in overlap.items()}}
     out["agent_iou_ratio"] = iou_ratio(overlap["real"], overlap["tokenized"]).as_dict()
+    by_frame = {k: per_frame_overlap(v, held.agents) for k, v in predicted.items()}
+    out["agent_iou_ratio_by_frame"] = [e.as_dict() for e in iou_ratio_by_frame(by_frame["real"],
+                                                                                by_frame["tokenized"])]
     background = ~held.boxes
     out["psnr_in_boxes"] = finite_interval(region_psnr(tokenized, held.frames, held.boxes)).as_dict()
     out["psnr_background"] = finite_interval(region_psnr(tokenized, held.frames, background)).as_dict()
@@ -210,6 +215,7 @@ def markdown(family: str, result: dict[str, Any]) -> str:
              f"| lead vehicle found ({s['lead_frames']} frames) | {est(s['lead_presence']['real'])} | "
              f"{est(s['lead_presence']['tokenized'])} |", "",
              f"agent_iou_ratio (tokenized ÷ real): **{est(s['agent_iou_ratio'])}** (target ≥ 0.8)", "",
+             "by frame of the clip: " + ", ".join(f"{e['mean']:.2f}" for e in s["agent_iou_ratio_by_frame"]), "",
              "| tokenized vs real | in agent boxes | background |", "|---|---|---|",
              f"| PSNR (dB) ↑ | {est(s['psnr_in_boxes'], 2)} | {est(s['psnr_background'], 2)} |"]
     if "lpips_in_boxes" in s:

@@ -20,11 +20,13 @@ from gaia_app.eval.agent_fidelity import (
     check_labels,
     fidelity_frames,
     iou_ratio,
+    iou_ratio_by_frame,
     iou_ratio_difference,
     lead_found,
     lead_mask,
     lead_share,
     per_clip_overlap,
+    per_frame_overlap,
     region_lpips,
     region_psnr,
 )
@@ -125,6 +127,21 @@ def test_paired_ratio_difference_of_two_tokenizers_is_the_difference_of_their_ra
         iou_ratio_difference(real, halves, (halves[0][:4], halves[1][:4]))
 
 
+def test_iou_ratio_by_frame_finds_the_frame_that_loses_the_agents() -> None:
+    """A tokenizer that keeps every agent in frames 0 and 2 and half of them in frames 1 and 3 (as a tubelet might)."""
+    truth = torch.zeros(6, 4, 8, 8, dtype=torch.bool)
+    truth[:, :, 2:6, 2:6] = True
+    tokenized = truth.clone()
+    tokenized[:, 1::2, 2:6, 4:6] = False
+    by_frame = iou_ratio_by_frame(per_frame_overlap(truth.clone(), truth), per_frame_overlap(tokenized, truth))
+    assert [e.mean for e in by_frame] == pytest.approx([1.0, 0.5, 1.0, 0.5])
+    assert all(e.n == 6 for e in by_frame)
+    whole = iou_ratio(per_clip_overlap(truth.clone(), truth), per_clip_overlap(tokenized, truth))
+    assert whole.mean == pytest.approx(0.75)  # the pooled ratio lies between the frames'
+    with pytest.raises(ValueError, match="differ"):
+        per_frame_overlap(tokenized[:, :2], truth)
+
+
 def test_lead_found_needs_half_of_the_vehicle_covered() -> None:
     lead = torch.zeros(2, 3, 4, 4, dtype=torch.bool)
     lead[0, :, 0, :] = True  # clip 0: a lead vehicle of 4 pixels in every frame; clip 1: none
@@ -161,6 +178,7 @@ def test_benchmark_scores_both_families_with_one_probe(tmp_path: Path) -> None:
     written = json.loads((tmp_path / "gaia1.json").read_text())
     assert written["family"] == "gaia1" and written["agent_iou_ratio"] == first["scores"]["agent_iou_ratio"]["mean"]
     assert set(written["scores"]) >= {"agent_iou", "psnr_in_boxes", "psnr_background", "lead_presence"}
+    assert len(written["scores"]["agent_iou_ratio_by_frame"]) == written["frames"]
     assert written["probe"]["steps"] == 3 and written["rate"] == 6.25
     second = bench.main(["--weights", "gaia2", "--probe", str(tmp_path / "probe"), *common])
     assert second["family"] == "gaia2" and second["rate"] == 12.5 and second["probe"]["world_seed"] == 4901

@@ -195,6 +195,23 @@ def per_clip_overlap(predicted: torch.Tensor, masks: torch.Tensor) -> tuple[np.n
     return (predicted & masks).sum(dims).numpy(), (predicted | masks).sum(dims).numpy()
 
 
+def per_frame_overlap(predicted: torch.Tensor, masks: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """(intersection, union) pixel counts (N, t) per clip and frame index of predicted and true masks (N, t, H, W):
+    a tokenizer that compresses time (GAIA-2's 4-frame tubelets) may keep agents better in some frames of a latent
+    step than in others."""
+    if predicted.shape != masks.shape:
+        raise ValueError(f"agent fidelity: predicted masks {tuple(predicted.shape)} and masks {tuple(masks.shape)} "
+                         "differ")
+    return (predicted & masks).sum((2, 3)).numpy(), (predicted | masks).sum((2, 3)).numpy()
+
+
+def iou_ratio_by_frame(real: tuple[np.ndarray, np.ndarray], tokenized: tuple[np.ndarray, np.ndarray],
+                       resamples: int = 2000) -> list[Estimate]:
+    """iou_ratio of each frame index from (N, t) per-frame counts (per_frame_overlap): t estimates."""
+    return [iou_ratio((real[0][:, k], real[1][:, k]), (tokenized[0][:, k], tokenized[1][:, k]), resamples)
+            for k in range(real[0].shape[1])]
+
+
 def lead_found(predicted: torch.Tensor, lead: torch.Tensor,
                share: float = FOUND_SHARE) -> tuple[np.ndarray, np.ndarray]:
     """Per clip: (frames where the probe covers ≥ `share` of the lead vehicle's pixels, frames with a lead vehicle),
