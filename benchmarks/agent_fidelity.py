@@ -186,10 +186,10 @@ def real_clip_rows(round_trip: Any, clips: list[Clip], lpips: Any) -> dict[str, 
 def score(probe: AgentSegmentationProbe, held: FidelityFrames, tokenized: torch.Tensor, lpips: Any) -> dict[str, Any]:
     """Every number of the module docstring for real and tokenized frames."""
     predicted = {"real": predicted_agents(probe, held.frames), "tokenized": predicted_agents(probe, tokenized)}
-    overlap = {k: per_clip_overlap(v, held.agents) for k, v in predicted.items()}
+    by_frame = {k: per_frame_overlap(v, held.agents) for k, v in predicted.items()}
+    overlap = {k: (i.sum(1), u.sum(1)) for k, (i, u) in by_frame.items()}  # per clip: the frames' counts summed
     out: dict[str, Any] = {"agent_iou": {k: float(i.sum() / max(u.sum(), 1)) for k, (i, u) in overlap.items()}}
     out["agent_iou_ratio"] = iou_ratio(overlap["real"], overlap["tokenized"]).as_dict()
-    by_frame = {k: per_frame_overlap(v, held.agents) for k, v in predicted.items()}
     out["agent_iou_ratio_by_frame"] = [e.as_dict() for e in iou_ratio_by_frame(by_frame["real"],
                                                                                 by_frame["tokenized"])]
     background = ~held.boxes

@@ -138,6 +138,8 @@ def test_iou_ratio_by_frame_finds_the_frame_that_loses_the_agents() -> None:
     assert all(e.n == 6 for e in by_frame)
     whole = iou_ratio(per_clip_overlap(truth.clone(), truth), per_clip_overlap(tokenized, truth))
     assert whole.mean == pytest.approx(0.75)  # the pooled ratio lies between the frames'
+    frames, clips = per_frame_overlap(tokenized, truth), per_clip_overlap(tokenized, truth)
+    assert all((f.sum(1) == c).all() for f, c in zip(frames, clips))  # the benchmark sums frames into clips
     with pytest.raises(ValueError, match="differ"):
         per_frame_overlap(tokenized[:, :2], truth)
 
