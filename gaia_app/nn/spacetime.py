@@ -43,6 +43,20 @@ def sincos_2d(height: int, width: int, dim: int, device: torch.device | None = N
     return rearrange(grid, "h w d -> (h w) d")
 
 
+def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, **kwargs) -> torch.Tensor:
+    """`scaled_dot_product_attention` of (b, h, s, e) heads, in float32 when bfloat16 activations sit on a CPU.
+
+    Why: under CPU bfloat16 autocast the linear layers run on AMX/AVX512-BF16 at 3-4x the float32 rate, but SDPA's
+    CPU flash kernel is slower in bfloat16 than in float32 (GAIA-2 s = 4 tokenizer step on one core: 2.06 against
+    1.14 s of attention; docs/benchmarks.md, "CPU: bfloat16 autocast"). The output comes back in q's dtype.
+    """
+    if q.device.type != "cpu" or q.dtype != torch.bfloat16:
+        return F.scaled_dot_product_attention(q, k, v, **kwargs)
+    with torch.autocast("cpu", enabled=False):
+        out = F.scaled_dot_product_attention(q.float(), k.float(), v.float(), **kwargs)
+    return out.to(q.dtype)
+
+
 class SelfAttention(nn.Module):
     """Bidirectional multi-head attention on `scaled_dot_product_attention`: x (b, s, d) → (b, s, d)."""
 
@@ -56,7 +70,7 @@ class SelfAttention(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         q, k, v = rearrange(self.to_qkv(x), "b s (three h e) -> three b h s e", three=3, h=self.heads)
-        out = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
+        out = attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
         return self.to_out(rearrange(out, "b h s e -> b s (h e)"))
 
 
@@ -142,8 +156,7 @@ class CrossAttention(nn.Module):
         q = rearrange(self.to_q(x), "b n (h e) -> b h n e", h=self.heads)
         k, v = rearrange(self.to_kv(context), "b m (two h e) -> two b h m e", two=2, h=self.heads)
         attn_mask = None if mask is None else mask[:, None, None, :]
-        out = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask,
-                                             dropout_p=self.dropout if self.training else 0.0)
+        out = attention(q, k, v, attn_mask=attn_mask, dropout_p=self.dropout if self.training else 0.0)
         return self.to_out(rearrange(out, "b h n e -> b n (h e)"))
 
 

@@ -19,6 +19,12 @@ tokenizer files (and the probes, unless controllability.probes is given) are cop
 writes a GAIA-2 folder: video_tokenizer.{safetensors,yaml} (the tokenizer without its discriminator; info: the
 input size data.height × data.width) and latent_world_model.{safetensors,yaml} (with its caption encoder; info: the
 latent scale), which `model=gaia2 weights=<folder>` runs generate with.
+
+    python generate.py [model=gaia2] mode=export export_parts=tokenizer tokenizer_ckpt=<last.ckpt> out_dir=<folder>
+
+writes the tokenizer alone (tokenizer.* or video_tokenizer.*): a folder that `mode=tokenize` / `mode=encode
+weights=<folder>` and benchmarks/agent_fidelity.py read, so a tokenizer trained on one machine can be tokenized with
+and scored on another before any world model exists for it.
 """
 
 from __future__ import annotations
@@ -49,8 +55,35 @@ def export_sources(cfg: DictConfig, mode: str, tokenizer: str, tokenizer_hint: s
     return source
 
 
+EXPORT_PARTS = ("all", "tokenizer")
+
+
+def tokenizer_only(cfg: DictConfig, component: str) -> dict[str, Any] | None:
+    """With `export_parts=tokenizer`: `cfg.tokenizer_ckpt`'s `component` ("tokenizer" or "video_tokenizer") written
+    alone into `cfg.out_dir` → the export's results; None for `export_parts=all`."""
+    parts = cfg.get("export_parts", "all")
+    if parts not in EXPORT_PARTS:
+        raise ValueError(f"export_parts={parts!r}: expected one of {list(EXPORT_PARTS)}")
+    if parts == "all":
+        return None
+    if not cfg.get("tokenizer_ckpt"):
+        raise ValueError(f"mode=export export_parts=tokenizer needs tokenizer_ckpt=<checkpoint of a {component}>")
+    for key in ("weights", "world_model_ckpt", "decoder_ckpt"):
+        if cfg.get(key):
+            raise ValueError(f"mode=export export_parts=tokenizer writes the tokenizer alone; drop {key}")
+    checkpoint = checked_checkpoint(cfg.tokenizer_ckpt, "tokenizer_ckpt", component)
+    out = Path(cfg.out_dir)
+    return {"out_dir": str(out),
+            component: export_component(checkpoint, out, component, ["net"],
+                                        {"image_size": [int(cfg.data.height), int(cfg.data.width)]},
+                                        cfg.export_dtype)}
+
+
 def export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Export `cfg.tokenizer_ckpt`, `cfg.world_model_ckpt` and `cfg.controllability.probes` into `cfg.out_dir`."""
+    alone = tokenizer_only(cfg, "tokenizer")
+    if alone is not None:
+        return alone
     source = export_sources(cfg, "mode=export", "tokenizer", "<checkpoint>", "<checkpoint>")
     out = Path(cfg.out_dir)
     results: dict[str, Any] = {"out_dir": str(out)}
@@ -104,6 +137,9 @@ def export_gaia2(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """A GAIA-2 weights folder in `cfg.out_dir` from `cfg.tokenizer_ckpt` (or the video tokenizer of the weights
     folder `cfg.weights`, copied: a world model fine-tuned from shipped weights keeps their tokenizer) and
     `cfg.world_model_ckpt`."""
+    alone = tokenizer_only(cfg, "video_tokenizer")
+    if alone is not None:
+        return alone
     source = export_sources(cfg, "model=gaia2 mode=export", "video tokenizer",
                             "<checkpoint of a GAIA-2 video tokenizer>", "<checkpoint of a GAIA-2 latent world model>")
     out = Path(cfg.out_dir)
