@@ -1,6 +1,6 @@
 r"""Issue 50 on one GPU: the paper-faithful study's smaller budgets on the D = 4 tokens, trained and scored in one run.
 
-    python benchmarks/gpu_paper_faithful.py --out $OUT/pf --tokenizer .gpu/tokenizer_d4.ckpt \
+    python benchmarks/gpu_paper_faithful.py --out $OUT/pf --tokenizer gaia_app/weights/gaia1_road_users \
         --minilm .gpu/minilm.tar.xz --score paper_full=.gpu/paper_d4.ckpt \
         --score shortcuts_full=.gpu/world_model_d4.ckpt
     python benchmarks/gpu_paper_faithful.py --out /tmp/pf --tokenizer <…> --minilm <…> --dry-run   # tiny, on a CPU
@@ -42,6 +42,7 @@ from benchmarks.gpu_road_users import (  # noqa: E402
     run_stage,
     slim_checkpoint,
     tokenize_commands,
+    tokenizer_setting,
     world_model_command,
 )
 from gaia_app.utils.run_dir import atomic_path  # noqa: E402
@@ -77,7 +78,7 @@ def ladder_arms(cache: Path, work: Path, seconds: float, dry: bool, minilm: Path
 
 
 def export_command(tokenizer: Path, checkpoint: Path, folder: Path) -> list[str]:
-    return ["generate.py", "mode=export", f"tokenizer_ckpt={tokenizer}", f"world_model_ckpt={checkpoint}",
+    return ["generate.py", "mode=export", tokenizer_setting(tokenizer, "tokenizer_ckpt"), f"world_model_ckpt={checkpoint}",
             f"controllability.probes={PROBES}", f"out_dir={folder}", f"hydra.run.dir={folder}_export"]
 
 
@@ -111,7 +112,8 @@ def parse_score(text: str) -> tuple[str, Path]:
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, required=True, help="what comes back: paper_faithful.json and ladder.tar")
-    p.add_argument("--tokenizer", type=Path, required=True, help="the D = 4 tokenizer checkpoint")
+    p.add_argument("--tokenizer", type=Path, required=True, help="the D = 4 tokenizer: a checkpoint or a weights folder "
+                   "(gaia_app/weights/gaia1_road_users)")
     p.add_argument("--minilm", type=Path, default=None, help="pack_minilm.py's archive (without: no paper arm)")
     p.add_argument("--score", type=parse_score, action="append", default=[],
                    help="NAME=<world-model checkpoint> trained earlier, scored beside the new ones")

@@ -1,7 +1,6 @@
 r"""Issue 49 on one GPU: the GAIA-1 world model on the D = 4 tokenizer's 448 tokens per frame, in one run of ≤ 9 min.
 
-    python benchmarks/gpu_road_users.py --out $OUT/ru \
-        --tokenizer outputs/road_users/tokenizer_d4_long/checkpoints/last.ckpt
+    python benchmarks/gpu_road_users.py --out $OUT/ru --tokenizer gaia_app/weights/gaia1_road_users
     python benchmarks/gpu_road_users.py --out $OUT/ru          # also trains the tokenizer (≈ 5 more minutes)
     python benchmarks/gpu_road_users.py --out $OUT/ru --tokenizer <…> --minilm .gpu/minilm.tar.xz   # + the paper arm
     python benchmarks/gpu_road_users.py --out /tmp/ru --dry-run   # tiny sizes on a CPU: checks that every stage runs
@@ -146,6 +145,12 @@ def tokenizer_commands(work: Path, dry: bool) -> list[list[str]]:
              f"model.init_from={first / 'checkpoints/last.ckpt'}", f"hydra.run.dir={second}"]]
 
 
+def tokenizer_setting(tokenizer: Path, checkpoint_key: str = "ckpt") -> str:
+    """How generate.py reads the tokenizer: a weights folder (e.g. gaia_app/weights/gaia1_road_users, written by
+    `mode=export export_parts=tokenizer`) as weights=, a training checkpoint as `checkpoint_key`=."""
+    return f"weights={tokenizer}" if tokenizer.is_dir() else f"{checkpoint_key}={tokenizer}"
+
+
 def tokenize_commands(tokenizer: Path, cache: Path, dry: bool) -> list[list[str]]:
     """Both clip mixes into one cache (segments are named by clip, so the mixes sit side by side)."""
     device = ["device=cpu", "workers=0"] if dry else ["device=cuda", "workers=14"]
@@ -153,7 +158,7 @@ def tokenize_commands(tokenizer: Path, cache: Path, dry: bool) -> list[list[str]
     for i, mix in enumerate((POLICY_MIX, DRIVEN_MIX)):
         if dry:
             mix = [*(t for t in mix if not t.startswith(("data.source.num_clips", "data.val_source"))), *DRY["clips"]]
-        commands.append(["generate.py", "mode=tokenize", f"ckpt={tokenizer}", *CLIPS, *mix, *device,
+        commands.append(["generate.py", "mode=tokenize", tokenizer_setting(tokenizer), *CLIPS, *mix, *device,
                          f"out_dir={cache}", f"hydra.run.dir={cache}_run{i}"])
     return commands
 
@@ -233,7 +238,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, required=True, help="what comes back: checkpoints, logs, road_users.json")
     p.add_argument("--tokenizer", type=Path, default=None,
-                   help="a trained D = 4 tokenizer checkpoint (else the two tokenizer runs train it first)")
+                   help="a trained D = 4 tokenizer: a checkpoint or a weights folder (the shipped "
+                        "gaia_app/weights/gaia1_road_users); else the two tokenizer runs train it first")
     p.add_argument("--work", type=Path, default=Path("/tmp/road_users"), help="runs and caches (not brought back)")
     p.add_argument("--minilm", type=Path, default=None,
                    help="pack_minilm.py's archive (or a MiniLM directory): also train the paper arm (issue 50)")
@@ -257,7 +263,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                          BUDGETS["tokenizer"]):
             return report.data
         tokenizer = args.work / "tokenizer_d4_long/checkpoints/last.ckpt"
-    report.save("tokenizer_checkpoint", slim_checkpoint(tokenizer, args.out / "tokenizer_d4.ckpt"))
+    report.save("tokenizer_checkpoint", {"folder": str(tokenizer)} if tokenizer.is_dir()
+                else slim_checkpoint(tokenizer, args.out / "tokenizer_d4.ckpt"))
     cache = args.work / "tokens_d4"
     if not run_stage(report, args.out, "tokenize", tokenize_commands(tokenizer, cache, args.dry_run),
                      BUDGETS["tokenize"]):

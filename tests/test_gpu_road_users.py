@@ -36,6 +36,16 @@ def test_both_clip_mixes_go_into_one_cache(road_users, tmp_path: Path) -> None:
     assert all("data.source.num_clips=2" in argv and "data.source.num_clips=1024" not in argv for argv in dry)
 
 
+def test_a_tokenizer_weights_folder_is_read_as_weights_and_a_checkpoint_as_ckpt(road_users, tmp_path: Path) -> None:
+    folder = tmp_path / "gaia1_road_users"
+    folder.mkdir()
+    assert road_users.tokenize_commands(folder, tmp_path / "cache", dry=False)[0][2] == f"weights={folder}"
+    assert road_users.tokenize_commands(tmp_path / "t.ckpt", tmp_path / "cache", dry=False)[0][2] == \
+        f"ckpt={tmp_path / 't.ckpt'}"
+    assert load_benchmark("gpu_paper_faithful").export_command(folder, tmp_path / "w.ckpt", tmp_path / "o")[2] == \
+        f"weights={folder}"
+
+
 def test_slim_checkpoint_keeps_what_inference_reads_in_float16(road_users, tmp_path: Path) -> None:
     state = {"net.weight": torch.randn(4, 4), "net.steps": torch.tensor(3)}
     full = {"state_dict": state, "hyper_parameters": {"model_cfg": {"a": 1}}, NETS_RECORD: {"component": "tokenizer"},
