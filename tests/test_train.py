@@ -45,6 +45,35 @@ def test_resume_continues_from_last_checkpoint(trained_run: Path) -> None:
     assert out["model"].trainer.fit_loop.epoch_loop._batches_that_stepped == 6
 
 
+def test_a_resume_with_another_checkpoint_interval_keeps_writing_last_ckpt(tmp_path: Path) -> None:
+    """Lightning keys ModelCheckpoint's saved state by its settings: a run resumed with another interval (e.g.
+    val_check_interval 2 → 1) does not get its last_model_path back, and with Lightning's version counter it wrote
+    last-v1.ckpt beside the stale last.ckpt, so the next ckpt_path=last went back to the older step."""
+    run = [*TINY, "trainer.max_steps=2", "callbacks.model_checkpoint.every_n_train_steps=2"]
+    train(compose_config("train", run, tmp_path))
+    resumed = [*TINY, "trainer.max_steps=4", "callbacks.model_checkpoint.every_n_train_steps=1", "ckpt_path=last"]
+    assert train(compose_config("train", resumed, tmp_path))["trainer"].global_step == 4
+    assert sorted(p.name for p in (tmp_path / "checkpoints").glob("last*.ckpt")) == ["last.ckpt"]
+    assert torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=False)["global_step"] == 4
+    again = [*TINY, "trainer.max_steps=5", "callbacks.model_checkpoint.every_n_train_steps=1", "ckpt_path=last"]
+    out = train(compose_config("train", again, tmp_path))
+    assert out["model"].trainer.fit_loop.epoch_loop._batches_that_stepped == 5  # resumed at 4, not at 2
+
+
+def test_ckpt_path_last_takes_a_newer_versioned_last_of_an_older_run_dir(tmp_path: Path) -> None:
+    import os
+
+    from gaia_app.tasks.train import newest_last
+
+    assert newest_last(tmp_path) == tmp_path / "last.ckpt"  # nothing there: the fresh-start path
+    for name, mtime in (("last.ckpt", 100), ("last-v1.ckpt", 300), ("last-v2.ckpt", 200)):
+        (tmp_path / name).write_bytes(b"")
+        os.utime(tmp_path / name, (mtime, mtime))
+    assert newest_last(tmp_path) == tmp_path / "last-v1.ckpt"
+    os.utime(tmp_path / "last.ckpt", (400, 400))
+    assert newest_last(tmp_path) == tmp_path / "last.ckpt"
+
+
 def test_resume_from_missing_path_is_an_error(tmp_path: Path) -> None:
     cfg = compose_config("train", [*TINY, "ckpt_path=/nonexistent/x.ckpt"], tmp_path)
     with pytest.raises(FileNotFoundError, match="nonexistent"):

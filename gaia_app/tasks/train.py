@@ -39,7 +39,7 @@ def resume_path(ckpt_path: str | None, run_dir: Path) -> str | None:
     if ckpt_path in (None, ""):
         return None
     if ckpt_path == "last":
-        last = run_dir / "checkpoints" / "last.ckpt"
+        last = newest_last(run_dir / "checkpoints")
         if not last.exists():
             log.info("ckpt_path=last: no checkpoint in %s yet, so this run starts fresh from step 0", last.parent)
             return None
@@ -48,6 +48,17 @@ def resume_path(ckpt_path: str | None, run_dir: Path) -> str | None:
         raise FileNotFoundError(f"ckpt_path={ckpt_path}: no such checkpoint")
     check_checkpoint_file(ckpt_path)
     return ckpt_path
+
+
+def newest_last(checkpoints: Path) -> Path:
+    """checkpoints/last.ckpt, or the newer last-v<N>.ckpt that Lightning's version counter wrote beside it in run
+    dirs from before conf/callbacks/model_checkpoint.yaml switched the counter off (a warning names it)."""
+    last = checkpoints / "last.ckpt"
+    versions = sorted(checkpoints.glob("last-v*.ckpt"), key=lambda p: p.stat().st_mtime)
+    if versions and (not last.exists() or versions[-1].stat().st_mtime > last.stat().st_mtime):
+        log.warning("ckpt_path=last: %s is newer than last.ckpt; resuming from it", versions[-1].name)
+        return versions[-1]
+    return last
 
 
 def build(cfg: DictConfig) -> dict[str, Any]:
