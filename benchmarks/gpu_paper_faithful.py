@@ -78,8 +78,9 @@ def ladder_arms(cache: Path, work: Path, seconds: float, dry: bool, minilm: Path
 
 
 def export_command(tokenizer: Path, checkpoint: Path, folder: Path) -> list[str]:
-    return ["generate.py", "mode=export", tokenizer_setting(tokenizer, "tokenizer_ckpt"), f"world_model_ckpt={checkpoint}",
-            f"controllability.probes={PROBES}", f"out_dir={folder}", f"hydra.run.dir={folder}_export"]
+    return ["generate.py", "mode=export", tokenizer_setting(tokenizer, "tokenizer_ckpt"),
+            f"world_model_ckpt={checkpoint}", f"controllability.probes={PROBES}", f"out_dir={folder}",
+            f"hydra.run.dir={folder}_export"]
 
 
 def score_command(folder: Path, run: Path, dry: bool) -> list[str]:
@@ -112,8 +113,8 @@ def parse_score(text: str) -> tuple[str, Path]:
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, required=True, help="what comes back: paper_faithful.json and ladder.tar")
-    p.add_argument("--tokenizer", type=Path, required=True, help="the D = 4 tokenizer: a checkpoint or a weights folder "
-                   "(gaia_app/weights/gaia1_road_users)")
+    p.add_argument("--tokenizer", type=Path, required=True,
+                   help="the D = 4 tokenizer: a checkpoint or a weights folder (gaia_app/weights/gaia1_road_users)")
     p.add_argument("--minilm", type=Path, default=None, help="pack_minilm.py's archive (without: no paper arm)")
     p.add_argument("--score", type=parse_score, action="append", default=[],
                    help="NAME=<world-model checkpoint> trained earlier, scored beside the new ones")

@@ -20,9 +20,9 @@ RIG = ["data=synthetic_rig_tiny", "extras.print_config=false"]
 
 
 def export_alone(family: list[str], ckpt: Path, out: Path, run_dir: Path, *extra: str) -> dict:
-    return generate(compose_config("generate", [*family, "mode=export", "export_parts=tokenizer", "export_dtype=float32",
-                                                f"tokenizer_ckpt={ckpt}", f"out_dir={out}", *extra],
-                                   run_dir))["results"]
+    overrides = [*family, "mode=export", "export_parts=tokenizer", "export_dtype=float32", f"tokenizer_ckpt={ckpt}",
+                 f"out_dir={out}", *extra]
+    return generate(compose_config("generate", overrides, run_dir))["results"]
 
 
 def test_a_gaia2_video_tokenizer_exports_alone_and_encodes_like_its_checkpoint(gaia2_tiny, tmp_path: Path) -> None:
