@@ -37,7 +37,7 @@ def test_a_gaia2_video_tokenizer_exports_alone_and_encodes_like_its_checkpoint(g
         torch.testing.assert_close(exported.encode(video).mean, trained.encode(video).mean, rtol=0, atol=0)
     encoded = generate(compose_config("generate", ["mode=encode", *RIG, f"weights={folder}",
                                                    f"out_dir={tmp_path / 'latents'}"], tmp_path / "enc"))["results"]
-    assert encoded
+    assert encoded["train"]["written"] == 8 and encoded["val"]["written"] == 2  # data=synthetic_rig_tiny's clips
 
 
 def test_a_gaia1_tokenizer_exports_alone_and_the_fidelity_benchmark_reads_it(gaia1_tiny, tmp_path: Path) -> None:
