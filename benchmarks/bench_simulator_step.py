@@ -11,12 +11,15 @@ Paths, alternated `--repeats` times (medians):
   full recompute  the session with the sampler's KV cache off (the whole window re-run at every token)
   session, compiled decode   (--compiled) the session with `token_sampler.decode_step=compiled`: each token after
                   a frame's first decoded by the torch.compile'd fixed-shape step on a static KV cache (issue 51)
+  ..., K tokens per call     (--tokens-per-call K ...) the same step decoding K tokens per call, each token's
+                  draw inside the graph from noise drawn beforehand (the same tokens)
 for the shipped reference weights (learned time), and for a world model of the same layout with rotary time
 (random weights: `--rope`), where a slide drops the oldest step from the cache. Real-time ratio: frames/s ÷ 6.25.
 
     python benchmarks/bench_simulator_step.py --steps 16 --repeats 3 --rope
     python benchmarks/bench_simulator_step.py --steps 16 --repeats 3 --full-steps 0 --compiled
     python benchmarks/bench_simulator_step.py --steps 16 --repeats 5 --full-steps 0 --compiled --profile 4
+    python benchmarks/bench_simulator_step.py --steps 16 --repeats 5 --full-steps 0 --compiled --tokens-per-call 4 8
 """
 
 from __future__ import annotations
@@ -88,11 +91,15 @@ def with_sampler(pipeline: Gaia1Pipeline, sampler: AutoregressiveSampler) -> Dri
                                           sampler=sampler, rate=pipeline.rate))
 
 
-def paths(pipeline: Gaia1Pipeline, full: bool, compiled: bool = False) -> dict[str, DrivingSimulator]:
+def paths(pipeline: Gaia1Pipeline, full: bool, compiled: bool = False,
+          blocks: tuple[int, ...] = ()) -> dict[str, DrivingSimulator]:
     envs = {"session": DrivingSimulator(pipeline), "window per step": window_per_step(pipeline)}
     picker = pipeline.rollouts.sampler.picker
     if compiled:
         envs["session, compiled decode"] = with_sampler(pipeline, AutoregressiveSampler(picker, decode_step="compiled"))
+    for block in blocks:
+        envs[f"session, compiled decode, {block} tokens per call"] = with_sampler(
+            pipeline, AutoregressiveSampler(picker, decode_step="compiled", tokens_per_call=block))
     if full:
         envs["full recompute"] = with_sampler(pipeline, AutoregressiveSampler(picker, use_cache=False))
     return envs
@@ -114,6 +121,8 @@ def main() -> None:
     parser.add_argument("--rope", action="store_true", help="also a rotary-time world model of the shipped layout")
     parser.add_argument("--full-steps", type=int, default=2, help="steps of the (slow) full-recompute path; 0: skip")
     parser.add_argument("--compiled", action="store_true", help="also the session with the compiled decode step")
+    parser.add_argument("--tokens-per-call", type=int, nargs="*", default=[],
+                        help="also the compiled session decoding this many tokens per call, the draw inside (each)")
     parser.add_argument("--profile", type=int, default=0,
                         help="after the timed runs, print torch.profiler's top operators over this many steps of the "
                              "session (with --compiled: of the compiled session)")
@@ -124,7 +133,7 @@ def main() -> None:
                                                     if args.rope else {})
     results: dict[str, Any] = {"threads": torch.get_num_threads(), "steps": args.steps}
     for label, pipeline in models.items():
-        envs = paths(pipeline, args.full_steps > 0, args.compiled)
+        envs = paths(pipeline, args.full_steps > 0, args.compiled, tuple(args.tokens_per_call))
         runs: dict[str, list[float]] = {name: [] for name in envs}
         for env in envs.values():  # warm-up
             episode_rate(env, 1, seed=99)
@@ -138,6 +147,9 @@ def main() -> None:
         if args.compiled:
             compiled_rate = row["session, compiled decode"]["frames_per_s"]
             row["compiled_over_session"] = compiled_rate / row["session"]["frames_per_s"]
+        for block in args.tokens_per_call:
+            name = f"session, compiled decode, {block} tokens per call"
+            row[f"{block}_per_call_over_session"] = row[name]["frames_per_s"] / row["session"]["frames_per_s"]
         results[label] = row
         if args.profile:
             print(profile_table(envs["session, compiled decode" if args.compiled else "session"], args.profile))
@@ -147,6 +159,8 @@ def main() -> None:
         print(f"{label}: session / window per step {row['session_over_window_per_step']:.2f}×")
         if args.compiled:
             print(f"{label}: compiled decode / session {row['compiled_over_session']:.2f}×")
+        for block in args.tokens_per_call:
+            print(f"{label}: {block} tokens per call / session {row[f'{block}_per_call_over_session']:.2f}×")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2))
 

@@ -181,7 +181,8 @@ def decode_rows(net: WorldModel, batch: int, rows: list[str], frames: dict[str, 
     cond = net.conditioner(batch, net.frames, force_drop={"text": True, "actions": True})
     for row in rows:
         decode_step = "static" if args.dry_run and row == "compiled" else row  # no inductor build in a dry run
-        sampler = AutoregressiveSampler(TokenPicker("top_k", k=50), decode_step=decode_step)
+        per_call = args.tokens_per_call if decode_step != "eager" else 1
+        sampler = AutoregressiveSampler(TokenPicker("top_k", k=50), decode_step=decode_step, tokens_per_call=per_call)
         session = sampler.session(net, context, cond, generator=torch.Generator(device).manual_seed(0))
         session.next_frame()
         filled = session.stream.cache.length
@@ -200,7 +201,7 @@ def decode_rows(net: WorldModel, batch: int, rows: list[str], frames: dict[str, 
         per_step = seconds / net.n  # one decode step: one token of every rollout in the batch
         out[row] = {"frames_per_s": 1 / seconds, "tokens_per_s": batch * net.n / seconds, "ms_per_step": 1e3 * per_step,
                     "roofline_fraction": read / bandwidth / per_step, "bytes_per_step": read,
-                    "frame_seconds": times, "decode_step": decode_step,
+                    "frame_seconds": times, "decode_step": decode_step, "tokens_per_call": per_call,
                     "fell_back": sampler.steps.failure if sampler.steps is not None else None}
         save({"rows": dict(out)})
     if "eager" in out and "compiled" in out:
@@ -255,6 +256,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--context", type=int, default=4, help="generation: context frames")
     parser.add_argument("--eager-frames", type=int, default=2, help="generation: timed frames of the eager row")
     parser.add_argument("--compiled-frames", type=int, default=4, help="generation: timed frames of the compiled row")
+    parser.add_argument("--tokens-per-call", type=int, default=1,
+                        help="generation: image tokens per call (per graph replay) of the compiled row")
     parser.add_argument("--train-frames", type=int, default=8, help="training: steps T per sequence (T·610 positions)")
     parser.add_argument("--train-batch", type=int, default=4)
     return parser.parse_args()

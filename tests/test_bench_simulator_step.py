@@ -18,6 +18,10 @@ def test_the_compiled_path_is_the_session_with_the_compiled_decode_step() -> Non
     assert samplers["full recompute"].use_cache is False
     assert all(env.pipeline.world_model is pipeline.world_model for env in envs.values())  # the same nets
     assert list(bench.paths(pipeline, full=False)) == ["session", "window per step"]
+    blocked_paths = bench.paths(pipeline, full=False, compiled=True, blocks=(4,))
+    blocked = blocked_paths["session, compiled decode, 4 tokens per call"]
+    assert blocked.pipeline.rollouts.sampler.decode_step == "compiled"
+    assert blocked.pipeline.rollouts.sampler.tokens_per_call == 4
 
 
 def test_the_profile_names_the_operators_of_a_step() -> None:

@@ -200,3 +200,60 @@ def test_one_compiled_sampler_with_and_without_shared_noise(monkeypatch, step_ca
         eager = tokens(AutoregressiveSampler(TokenPicker("top_k", k=6)), shared)
         assert torch.equal(tokens(compiled_sampler, shared), eager)
     assert compiled_sampler.steps.failure is None and step_calls
+
+
+@pytest.mark.parametrize("picker", [TokenPicker("top_k", k=7), TokenPicker("top_p", p=0.7), TokenPicker("sample")],
+                         ids=["top_k", "top_p", "sample"])
+def test_a_draw_made_beforehand_picks_what_the_multinomial_picks(picker: TokenPicker) -> None:
+    """The several-tokens-per-call step draws each token's noise before the call (`TokenPicker.draw`) and picks
+    inside it (`finish_drawn`); that equals `finish`'s torch.multinomial under the same generator only while
+    PyTorch's one-sample multinomial is argmax(probs / Exp(1) noise): this pins it."""
+    logits = torch.randn(200, 3, 40, generator=torch.Generator().manual_seed(0)) * 3
+    eager, drawn = torch.Generator().manual_seed(11), torch.Generator().manual_seed(11)
+    for row in logits:
+        prepared = picker.prepare(row)
+        noise = picker.draw(picker.draw_shape(3, 40), drawn, row.device)
+        assert torch.equal(picker.finish_drawn(prepared, noise), picker.finish(prepared, eager))
+    assert TokenPicker("argmax").draw_shape(3, 40) is None
+
+
+@pytest.mark.parametrize("tokens_per_call", [2, 3], ids=["divides", "with_tail"])
+@pytest.mark.parametrize("picker", [TokenPicker("argmax"), TokenPicker("top_k", k=4), TokenPicker("top_p", p=0.8)],
+                         ids=["argmax", "top_k", "top_p"])
+@pytest.mark.parametrize("guided", [False, True], ids=["unguided", "cfg"])
+def test_several_tokens_per_call_give_the_eager_tokens(net: WorldModel, picker: TokenPicker, guided: bool,
+                                                       tokens_per_call: int, step_calls: list[int]) -> None:
+    """N − 1 = 4 tokens per frame after the first: 2 calls of 2, or one call of 3 and the one-token tail."""
+    eager = rollout(net, "eager", picker, guided)
+    cond, uncond = streams(net, 2, 2 + 2 * T)
+    context = torch.randint(0, V, (2, 2, N), generator=torch.Generator().manual_seed(1))
+    guidance = ClassifierFreeGuidance(2.0, LinearSchedule()) if guided else None
+    sampler = AutoregressiveSampler(picker, decode_step="static", tokens_per_call=tokens_per_call)
+    blocked = sampler(net, context, cond, uncond if guided else None, 2 * T, guidance,
+                      torch.Generator().manual_seed(5))
+    assert torch.equal(blocked, eager)
+    assert len(step_calls) == 2 * T * 2  # per frame: 2 + 2, or 3 + the tail's 1
+
+
+def test_several_tokens_per_call_with_shared_noise_compiled(monkeypatch, step_calls: list[int]) -> None:
+    """3 futures of 2 contexts sharing Gumbel noise per context, 3 tokens per compiled call (Dynamo + AOTAutograd)."""
+    monkeypatch.setattr(compiled_decode, "compile_options", lambda device: {"backend": "aot_eager", "fullgraph": True})
+    net = tiny("rope", shortcuts=True)
+    context = torch.randint(0, V, (2, 2, N), generator=torch.Generator().manual_seed(2))
+    text = torch.randn(2, 2 + T, M, E, generator=torch.Generator().manual_seed(3))
+
+    def tokens(sampler: AutoregressiveSampler, groups: torch.Tensor | None) -> torch.Tensor:
+        pipe = WorldModelRolloutPipeline(net, sampler, ClassifierFreeGuidance(3.0, LinearSchedule()))
+        return pipe(context, T, text=text, num_futures=3, generator=torch.Generator().manual_seed(0),
+                    noise_groups=groups).tokens
+
+    compiled = AutoregressiveSampler(TokenPicker("top_k", k=6), decode_step="compiled", tokens_per_call=3)
+    for shared in (torch.tensor([0, 1]), None):
+        assert torch.equal(tokens(compiled, shared), tokens(AutoregressiveSampler(TokenPicker("top_k", k=6)), shared))
+    assert compiled.steps.failure is None and len(step_calls) == 2 * T * 2
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True])
+def test_tokens_per_call_must_be_a_positive_integer(bad) -> None:
+    with pytest.raises(ValueError, match="tokens_per_call"):
+        AutoregressiveSampler(decode_step="static", tokens_per_call=bad)

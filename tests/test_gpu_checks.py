@@ -27,7 +27,7 @@ def gpu_checks(monkeypatch):
 
 
 def test_dry_run_writes_every_check(gpu_checks, monkeypatch, tmp_path) -> None:
-    monkeypatch.setattr(sys, "argv", ["gpu_checks.py", "--out", str(tmp_path), "--dry-run"])
+    monkeypatch.setattr(sys, "argv", ["gpu_checks.py", "--out", str(tmp_path), "--dry-run", "--tokens-per-call", "3"])
     gpu_checks.main()
     data = json.loads((tmp_path / "gpu_checks.json").read_text())
     assert data["meta"]["dry_run"] and data["meta"]["torch"] == torch.__version__ and data["meta"]["date"]
@@ -37,6 +37,7 @@ def test_dry_run_writes_every_check(gpu_checks, monkeypatch, tmp_path) -> None:
     rows = checks["futures_16"]["rows"]
     assert checks["futures_16"]["batch"] == 16 and rows["eager"]["tokens_per_s"] > 0
     assert 0 < rows["compiled"]["roofline_fraction"] and checks["training_mfu"]["mfu"] > 0
+    assert rows["compiled"]["tokens_per_call"] == 3 and rows["eager"]["tokens_per_call"] == 1
     assert "| generation_300M | compiled |" in (tmp_path / "gpu_checks.md").read_text()
 
 

@@ -120,6 +120,29 @@ class TokenPicker:
         choice = torch.multinomial(probs, 1, generator=generator)
         return (choice if index is None else index.gather(-1, choice)).squeeze(-1)
 
+    def draw_shape(self, rows: int, vocabulary: int) -> tuple[int, int] | None:
+        """The shape of the noise `finish` draws for `rows` rows of a vocabulary (None: argmax draws nothing)."""
+        if self.mode == "argmax":
+            return None
+        return (rows, min(self.k, vocabulary)) if self.mode == "top_k" else (rows, vocabulary)
+
+    @staticmethod
+    def draw(shape: tuple[int, int], generator: torch.Generator | None, device: torch.device) -> torch.Tensor:
+        """The standard exponential noise (shape) that `finish`'s multinomial draws from `generator`: PyTorch's
+        one-sample multinomial is argmax(probs / q) with q = empty_like(probs).exponential_(1, generator)
+        (tests/test_compiled_decode.py checks the two agree)."""
+        return torch.empty(shape, device=device).exponential_(1, generator=generator)
+
+    @staticmethod
+    def finish_drawn(prepared: Prepared, noise: torch.Tensor | None) -> torch.Tensor:
+        """`finish` with its noise drawn beforehand (`draw`): no generator inside, so a compiled graph can run it.
+        noise (b, K) for prepared probabilities (b, K); None when `prepared` is already the tokens."""
+        if isinstance(prepared, torch.Tensor):
+            return prepared
+        probs, index = prepared
+        choice = (probs / noise).argmax(-1, keepdim=True)
+        return (choice if index is None else index.gather(-1, choice)).squeeze(-1)
+
     def allowed(self, logits: torch.Tensor) -> torch.Tensor:
         """(b, V) tempered logits → the same with every token this picker cannot choose at −inf."""
         if self.mode == "sample":
@@ -209,10 +232,13 @@ class AutoregressiveSampler:
             it cannot compile). All three give the same tokens under a seed. Needs use_cache.
         cache_capacity: KV-cache positions per layer (None: one window, T steps plus the next step's text); less
             than a window is a ValueError.
+        tokens_per_call: with decode_step "static" or "compiled", the image tokens one call of the fixed-shape step
+            decodes, each token's draw inside it from noise drawn beforehand in eager's order (the same tokens);
+            several per call spend the per-call overhead once for all of them.
     """
 
     def __init__(self, picker: TokenPicker | None = None, use_cache: bool = True, progress: bool = False,
-                 decode_step: str = "eager", cache_capacity: int | None = None):
+                 decode_step: str = "eager", cache_capacity: int | None = None, tokens_per_call: int = 1):
         if decode_step not in DECODE_STEPS:
             raise ValueError(f"decode_step={decode_step!r}: expected one of {DECODE_STEPS}")
         if decode_step != "eager" and not use_cache:
@@ -224,7 +250,10 @@ class AutoregressiveSampler:
         self.use_cache = use_cache
         self.progress = progress
         self.decode_step, self.cache_capacity = decode_step, cache_capacity
-        self.steps = StepPool(decode_step) if decode_step != "eager" else None
+        if isinstance(tokens_per_call, bool) or int(tokens_per_call) != tokens_per_call or tokens_per_call < 1:
+            raise ValueError(f"tokens_per_call={tokens_per_call!r}: expected a positive integer")
+        self.tokens_per_call = int(tokens_per_call)
+        self.steps = StepPool(decode_step, self.tokens_per_call) if decode_step != "eager" else None
 
     def capacity(self, net: TokenWorldModel) -> int:
         """KV-cache positions per layer for `net`'s window; ValueError when cache_capacity is below it."""

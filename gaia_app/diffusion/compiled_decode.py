@@ -12,11 +12,13 @@ capacity with the unfilled slots masked, the embedding slot and the rotary time 
 plain `torch.compile`; `static` runs the same step uncompiled).
 
 Inside the step: the previous token's embedding (every guidance stream), the trunk, the head, eq. 3 guidance, and the
-deterministic part of the token choice (`TokenPicker.prepare`): argmax and shared-noise (Gumbel-max) picks entirely;
-for top-k, top-p and full sampling the candidates and their probabilities. The draw itself (one multinomial and a
-gather, `TokenPicker.finish`) stays eager: a compiled graph cannot take the caller's torch.Generator and continue its
-random stream, which is what makes a seeded rollout repeat eager's tokens. Pickers without `prepare` (the vector
-simulator's RowwisePicker, one generator per row) get the guided logits.
+whole token choice: `TokenPicker.prepare` (argmax and shared-noise Gumbel-max picks, or the candidates and their
+probabilities) and the draw, from noise drawn beforehand (`TokenPicker.draw`, `finish_drawn`). A compiled graph
+cannot take the caller's torch.Generator and continue its random stream, which is what makes a seeded rollout repeat
+eager's tokens; so the noise each token's multinomial would draw is drawn eagerly before the call, in eager's order,
+and the argmax that PyTorch's one-sample multinomial takes over it is taken inside. With the draw inside, one call
+can decode `block` tokens (`tokens_per_call`), paying the call's overhead once for all of them. Pickers without
+`prepare` (the vector simulator's RowwisePicker, one generator per row) get the guided logits, one token per call.
 
 Eager, as before: the prefill, each frame's first token (its chunk: the previous frame's last image token, its actions
 and this step's text), a window slide (StaticKVCache.drop_front shifts the cache in place: with rotary time
@@ -63,16 +65,17 @@ def cache_dtype(net: nn.Module, device: torch.device) -> torch.dtype:
 
 
 class DecodeStep(nn.Module):
-    """One image token in fixed shapes: previous token (b,) → the picker's prepared choice (or guided logits).
+    """`block` image tokens in fixed shapes: previous token (b,) → the chosen tokens (block, b) (or guided logits).
 
     The cache buffers and the per-frame inputs (`previous`, `previous_actions`) are registered buffers, so a
     compiled graph reads them at fixed addresses; eager code refills them between tokens and frames.
     """
 
     def __init__(self, net: nn.Module, cache: StaticKVCache, copies: int, n: int, actions: torch.Tensor,
-                 picker: Any, guidance: Any):
+                 picker: Any, guidance: Any, block: int = 1):
         super().__init__()
         self.net, self.cache, self.copies, self.picker, self.guidance = net, cache, copies, picker, guidance
+        self.block = block
         self.layers = len(cache.buffers)
         for layer, (keys, values) in enumerate(cache.buffers):
             self.register_buffer(f"keys{layer}", keys, persistent=False)
@@ -88,27 +91,46 @@ class DecodeStep(nn.Module):
         self.previous_actions.copy_(previous_actions)
 
     def forward(self, token: torch.Tensor, where: torch.Tensor, scale: torch.Tensor | None = None,
-                gumbel: torch.Tensor | None = None) -> Any:
-        """token (b,) int64: the image token just chosen; where (4,) int64: its slot in the frame, its absolute
-        position, the cached positions, the window step; scale: 0-dim float64 guidance scale (None unguided);
-        gumbel (b, V): shared noise or None → `picker.prepare`'s result, or guided logits (b, V)."""
-        slot, position, length, step = where.unbind()
-        x = self.net.embed_token(token.repeat(self.copies), slot, step, self.previous, self.previous_actions)
+                gumbel: torch.Tensor | None = None, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """`block` consecutive image tokens, each fed the one chosen before it.
+
+        token (b,) int64: the image token just chosen; where (K, 4) int64, a row per token: its slot in the frame,
+        its absolute position, the cached positions, the window step; scale (K,) float64 guidance scales (None
+        unguided); gumbel (K, b, V): shared noise per token, or None; noise (K, b, c): the exponential noise each
+        token's draw uses (`TokenPicker.draw`), or None (argmax, shared noise). → the tokens (K, b) int64; for a
+        picker without `prepare` (block 1 only) the guided logits (b, V), chosen eagerly.
+        """
         buffers = [(getattr(self, f"keys{i}"), getattr(self, f"values{i}")) for i in range(self.layers)]
-        logits = self.net.head(self.net.decode_token(x, buffers, length, position))  # (B, V)
-        if self.guidance is not None:
-            # scale in float64 as eager's Python float: (1 + s) rounds to the same float32 (equal tokens)
-            logits = self.guidance(*logits.chunk(2), scale)
-        return self.picker.prepare(logits, gumbel) if hasattr(self.picker, "prepare") else logits
+        chosen = []
+        for j in range(self.block):
+            slot, position, length, step = where[j].unbind()
+            x = self.net.embed_token(token.repeat(self.copies), slot, step, self.previous, self.previous_actions)
+            logits = self.net.head(self.net.decode_token(x, buffers, length, position))  # (B, V)
+            if self.guidance is not None:
+                # scale in float64 as eager's Python float: (1 + s) rounds to the same float32 (equal tokens)
+                logits = self.guidance(*logits.chunk(2), scale[j])
+            if not hasattr(self.picker, "prepare"):
+                return logits
+            prepared = self.picker.prepare(logits, None if gumbel is None else gumbel[j])
+            token = self.picker.finish_drawn(prepared, None if noise is None else noise[j])
+            chosen.append(token)
+        return torch.stack(chosen)
 
 
 class FixedStep:
-    """A DecodeStep, its callable (compiled or not) and the session using it."""
+    """A DecodeStep, its callable (compiled or not) and the session using it; `tail`: a one-token step on the same
+    cache for a frame's last tokens when a block of several does not divide them (None otherwise)."""
 
-    def __init__(self, module: DecodeStep, key: tuple, run: Any, cuda_graphs: bool, compiled: bool = False):
+    def __init__(self, module: DecodeStep, key: tuple, run: Any, cuda_graphs: bool, compiled: bool = False,
+                 tail: FixedStep | None = None):
         self.module, self.key, self.run, self.cuda_graphs, self.compiled = module, key, run, cuda_graphs, compiled
+        self.tail = tail
         self.owner: weakref.ref | None = None
         self.warm = False  # a compiled step has run once: its graph exists
+
+    def begin_frame(self, previous: torch.Tensor, previous_actions: torch.Tensor) -> None:
+        for step in (self, self.tail) if self.tail is not None else (self,):
+            step.module.begin_frame(previous, previous_actions)
 
     def free_for(self, session: SamplingSession) -> bool:
         owner = None if self.owner is None else self.owner()
@@ -135,12 +157,18 @@ class StepPool:
 
     mode: "static" or "compiled". After a compiled step fails (no working compiler, torch.compile raising) the pool
     logs one warning and hands out no more steps: the sampler decodes eagerly from then on.
+    tokens_per_call: image tokens each call of a step decodes, the token choice inside (`DecodeStep.block`); a
+    picker without `prepare` (the vector simulator's RowwisePicker) decodes one per call.
     """
 
-    def __init__(self, mode: str):
-        self.mode = mode
+    def __init__(self, mode: str, tokens_per_call: int = 1):
+        self.mode, self.tokens_per_call = mode, tokens_per_call
         self.steps: list[FixedStep] = []
         self.failure: str | None = None
+
+    def block_for(self, picker: Any) -> int:
+        """Tokens per call for `picker`: the eager choice of a picker without `prepare` comes between tokens."""
+        return self.tokens_per_call if hasattr(picker, "prepare") else 1
 
     def fall_back(self, reason: str) -> None:
         """Decode eagerly from now on; the first reason is logged, in one line."""
@@ -170,25 +198,41 @@ class StepPool:
         # everything that changes the step's graph: a warm compiled step skips Dynamo's guards (FixedStep.__call__)
         key = (id(net), streams.text.shape[0], tokens.shape[0], tokens.shape[2], tuple(streams.actions.shape[2:]),
                streams.actions.dtype, capacity, cache_dtype(net, device), device, session.sampler.picker,
-               session.guidance, session.noise_groups is None, torch.is_autocast_enabled(device.type))
+               session.guidance, session.noise_groups is None, torch.is_autocast_enabled(device.type),
+               self.block_for(session.sampler.picker))
         for step in self.steps:
             if step.key == key and step.module.net is net and step.free_for(session):
                 return step
         self.steps = [s for s in self.steps if s.key == key or not s.free_for(session)]  # drop idle ones of old keys
         cache = net.static_cache(key[1], capacity, key[7], device)
-        module = DecodeStep(net, cache, key[1] // key[2], key[3], streams.actions[:, 0], key[9], key[10])
+        block = key[-1]
+        tail = None
+        if block > 1 and (key[3] - 1) % block:  # the frame's last tokens, one per call on the same cache
+            tail = self.build(net, cache, key, 1, streams.actions[:, 0])
+            if tail is None:
+                return None
+        step = self.build(net, cache, key, block, streams.actions[:, 0], tail)
+        if step is not None:
+            self.steps.append(step)
+        return step
+
+    def build(self, net: nn.Module, cache: StaticKVCache, key: tuple, block: int, actions: torch.Tensor,
+              tail: FixedStep | None = None) -> FixedStep | None:
+        """A step of `block` tokens per call on `cache`, compiled in mode "compiled" (None after a failed compile)."""
+        module = DecodeStep(net, cache, key[1] // key[2], key[3], actions, key[9], key[10], block)
         run, cuda_graphs = module, False
         if self.mode == "compiled":
             for tensor in module.buffers(recurse=False):  # static addresses: never copied into a graph's inputs
                 torch._dynamo.mark_static_address(tensor)
             try:
-                run = torch.compile(module, **compile_options(device))
+                # dynamic=False: every shape is fixed by the pool's key, and a graph Dynamo made dynamic after a
+                # size change (another batch or k) fails the guard-free calls of a warm step
+                run = torch.compile(module, **({"dynamic": False} | compile_options(actions.device)))
             except Exception as error:  # noqa: BLE001 — any failure to compile means: decode eagerly
                 self.fall_back(f"torch.compile raised {type(error).__name__}: {first_line(error)}")
                 return None
-            cuda_graphs = compile_options(device).get("mode") == "reduce-overhead"
-        self.steps.append(FixedStep(module, key, run, cuda_graphs, compiled=self.mode == "compiled"))
-        return self.steps[-1]
+            cuda_graphs = compile_options(actions.device).get("mode") == "reduce-overhead"
+        return FixedStep(module, key, run, cuda_graphs, compiled=self.mode == "compiled", tail=tail)
 
 
 def first_line(error: BaseException) -> str:
@@ -214,34 +258,50 @@ class StaticStream:
         left to the eager loop (n when none, 1 at window step 0 or after a fallback)."""
         if t == 0 or self.step is None or self.pool.failure is not None:
             return 1
-        module, n = self.step.module, tokens.shape[2]
-        copies = module.copies
-        module.begin_frame(tokens[:, t - 1].repeat(copies, 1), session.streams.actions[:, t - 1])
+        n, b = tokens.shape[2], tokens.shape[0]
+        self.step.begin_frame(tokens[:, t - 1].repeat(self.step.module.copies, 1), session.streams.actions[:, t - 1])
         index = torch.arange(n - 1, device=tokens.device)
         where = torch.stack([index, index + self.cache.next_position, index + self.cache.length,
                              torch.full_like(index, t)], dim=1)  # (n − 1, 4): token i + 1's inputs in row i
         scales = None if scales is None else scales[1:].to(tokens.device, torch.float64)
         picker = session.sampler.picker
-        for i in range(1, n):
-            # drawn before the step, as eager draws it before the choice (the forward draws nothing)
-            gumbel = session.gumbel(vocabulary) if hasattr(picker, "prepare") else None
+        i = 1
+        while i < n:
+            step = self.step if n - i >= self.step.module.block else self.step.tail
+            block = step.module.block
+            rows = slice(i - 1, i - 1 + block)
+            gumbel, noise = self.draws(session, picker, block, b, vocabulary)
             try:
-                out = self.step(token, where[i - 1], None if scales is None else scales[i - 1], gumbel)
+                out = step(token, where[rows], None if scales is None else scales[rows], gumbel, noise)
             except Exception as error:  # noqa: BLE001 — a compiled step that cannot run: decode eagerly
                 if self.pool.mode != "compiled":
                     raise
                 self.pool.fall_back(f"the compiled step raised {type(error).__name__}: {first_line(error)}")
                 self.step = None
                 return i
-            token = self.choose(picker, out, session)
-            tokens[:, t, i] = token
-            self.cache.advance(1)
+            if hasattr(picker, "prepare"):
+                # a captured graph's outputs live in its memory pool, overwritten by the next replay
+                chosen = out.clone() if step.cuda_graphs else out  # (block, b)
+                tokens[:, t, i : i + block] = chosen.T
+                token = chosen[-1]
+            else:
+                token = picker(out, session.generator, session.gumbel(out.shape[-1]))
+                tokens[:, t, i] = token
+            self.cache.advance(block)
+            i += block
         return n
 
-    def choose(self, picker: Any, out: Any, session: SamplingSession) -> torch.Tensor:
-        """(b,) tokens from the step's output: the draw `prepare` left, or the picker on the guided logits."""
+    @staticmethod
+    def draws(session: SamplingSession, picker: Any, block: int, rows: int,
+              vocabulary: int) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """The random draws of the next `block` tokens, in eager decoding's order: per token its shared noise
+        (gumbel (block, b, V)) when rows share noise, else the exponential noise of its multinomial draw (noise
+        (block, b, c)); None where a token draws nothing (argmax) or the picker draws eagerly (no `prepare`)."""
         if not hasattr(picker, "prepare"):
-            return picker(out, session.generator, session.gumbel(out.shape[-1]))
-        token = picker.finish(out, session.generator)
-        # a captured graph's outputs live in its memory pool, overwritten by the next replay
-        return token.clone() if self.step.cuda_graphs and isinstance(out, torch.Tensor) else token
+            return None, None
+        gumbel = [session.gumbel(vocabulary) for _ in range(block)] if session.noise_groups is not None else None
+        shape = picker.draw_shape(rows, vocabulary)
+        if gumbel is not None or shape is None:
+            return None if gumbel is None else torch.stack(gumbel), None
+        device = session.tokens.device
+        return None, torch.stack([picker.draw(shape, session.generator, device) for _ in range(block)])

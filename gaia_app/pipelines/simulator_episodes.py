@@ -53,7 +53,7 @@ def rowwise_rollouts(pipeline: Gaia1Pipeline) -> WorldModelRolloutPipeline:
     rollouts = pipeline.rollouts
     base = rollouts.sampler
     sampler = AutoregressiveSampler(RowwisePicker(base.picker), base.use_cache, decode_step=base.decode_step,
-                                    cache_capacity=base.cache_capacity)
+                                    cache_capacity=base.cache_capacity, tokens_per_call=base.tokens_per_call)
     return WorldModelRolloutPipeline(rollouts.net, sampler, rollouts.guidance, rollouts.guided_streams)
 
 

@@ -89,6 +89,7 @@ GENERATE_RULES = (
     Rule("token_sampler.picker.k", integer(1)),
     Rule("token_sampler.picker.p", number(0, 1, low_open=True)),
     Rule("token_sampler.decode_step", one_of("eager", "static", "compiled")),
+    Rule("token_sampler.tokens_per_call", integer(1, 10_000)),
     Rule("decoder_blend.probability", number(0, 1)),
     Rule("decoder_blend.weight", number(0, 1)),
     Rule("model.guidance.scale", number(0, 100)),
