@@ -205,15 +205,20 @@ def test_one_compiled_sampler_with_and_without_shared_noise(monkeypatch, step_ca
 @pytest.mark.parametrize("picker", [TokenPicker("top_k", k=7), TokenPicker("top_p", p=0.7), TokenPicker("sample")],
                          ids=["top_k", "top_p", "sample"])
 def test_a_draw_made_beforehand_picks_what_the_multinomial_picks(picker: TokenPicker) -> None:
-    """The several-tokens-per-call step draws each token's noise before the call (`TokenPicker.draw`) and picks
-    inside it (`finish_drawn`); that equals `finish`'s torch.multinomial under the same generator only while
-    PyTorch's one-sample multinomial is argmax(probs / Exp(1) noise): this pins it."""
+    """Every draw (`finish`, and the compiled step's noise drawn before its call, `draw` + `finish_drawn`) picks
+    the token torch.multinomial picks under the same generator, so seeded rollouts keep the tokens they had when
+    `finish` called torch.multinomial; this holds while PyTorch's one-sample multinomial is argmax(probs / Exp(1)
+    noise), which this pins."""
     logits = torch.randn(200, 3, 40, generator=torch.Generator().manual_seed(0)) * 3
-    eager, drawn = torch.Generator().manual_seed(11), torch.Generator().manual_seed(11)
+    seeds = [torch.Generator().manual_seed(11) for _ in range(3)]
     for row in logits:
         prepared = picker.prepare(row)
-        noise = picker.draw(picker.draw_shape(3, 40), drawn, row.device)
-        assert torch.equal(picker.finish_drawn(prepared, noise), picker.finish(prepared, eager))
+        probs, index = prepared
+        choice = torch.multinomial(probs, 1, generator=seeds[0])
+        multinomial = (choice if index is None else index.gather(-1, choice)).squeeze(-1)
+        noise = picker.draw(picker.draw_shape(3, 40), seeds[1], row.device)
+        assert torch.equal(picker.finish_drawn(prepared, noise), multinomial)
+        assert torch.equal(picker.finish(prepared, seeds[2]), multinomial)
     assert TokenPicker("argmax").draw_shape(3, 40) is None
 
 

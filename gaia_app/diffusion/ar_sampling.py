@@ -113,12 +113,13 @@ class TokenPicker:
 
     @staticmethod
     def finish(prepared: Prepared, generator: torch.Generator | None = None) -> torch.Tensor:
-        """Tokens (b,) from `prepare`'s result: one multinomial draw among the candidates when one is left."""
+        """Tokens (b,) from `prepare`'s result: one draw among the candidates when one is left, the same token
+        torch.multinomial(probs, 1, generator) picks (`draw`). The compiled decode step draws the same noise before
+        its call and picks inside it (`finish_drawn`), so both paths share this one mechanism."""
         if isinstance(prepared, torch.Tensor):
             return prepared
-        probs, index = prepared
-        choice = torch.multinomial(probs, 1, generator=generator)
-        return (choice if index is None else index.gather(-1, choice)).squeeze(-1)
+        probs = prepared[0]
+        return TokenPicker.finish_drawn(prepared, TokenPicker.draw(tuple(probs.shape), generator, probs.device))
 
     def draw_shape(self, rows: int, vocabulary: int) -> tuple[int, int] | None:
         """The shape of the noise `finish` draws for `rows` rows of a vocabulary (None: argmax draws nothing)."""

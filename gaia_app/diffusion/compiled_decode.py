@@ -129,8 +129,10 @@ class FixedStep:
         self.warm = False  # a compiled step has run once: its graph exists
 
     def begin_frame(self, previous: torch.Tensor, previous_actions: torch.Tensor) -> None:
-        for step in (self, self.tail) if self.tail is not None else (self,):
-            step.module.begin_frame(previous, previous_actions)
+        """The frame's inputs for this step and its tail (`DecodeStep.begin_frame`)."""
+        self.module.begin_frame(previous, previous_actions)
+        if self.tail is not None:
+            self.tail.begin_frame(previous, previous_actions)
 
     def free_for(self, session: SamplingSession) -> bool:
         owner = None if self.owner is None else self.owner()

@@ -128,8 +128,8 @@ def load_dcp_metadata(folder: Path) -> Any:
 
 def check_dcp_metadata(folder: Path) -> Any:
     """Before torch.distributed.checkpoint (Lightning's resume) reads a shard folder: its index is safe, every file
-    it names lies inside the folder, and every non-tensor entry of the shards is plain data (torch unpickles those
-    with weights_only=False)."""
+    it names lies inside the folder, and every non-tensor entry of the shards is plain data (torch's own reader
+    unpickles those entries without the weights-only restriction, so they are read here weights-only first)."""
     metadata = load_dcp_metadata(folder)
     entries = [fqn for fqn, meta in metadata.state_dict_metadata.items() if not hasattr(meta, "chunks")]
     if entries:
