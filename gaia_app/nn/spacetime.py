@@ -24,12 +24,12 @@ from gaia_app.nn.transformer import FeedForward
 
 
 def sincos_1d(positions: torch.Tensor, dim: int, base: float = 10_000.0) -> torch.Tensor:
-    """positions (p,) float → (p, dim) [sin | cos] features at geometric frequencies (Vaswani et al.)."""
+    """positions (...) float → (..., dim) [sin | cos] features at geometric frequencies (Vaswani et al.)."""
     if dim % 2:
         raise ValueError(f"sincos_1d: dim={dim} must be even")
     freqs = torch.exp(-math.log(base) * torch.arange(dim // 2, device=positions.device, dtype=torch.float32)
                       / (dim // 2))
-    angles = positions.float()[:, None] * freqs[None, :]
+    angles = positions.float()[..., None] * freqs
     return torch.cat([angles.sin(), angles.cos()], dim=-1)
 
 
@@ -41,6 +41,14 @@ def sincos_2d(height: int, width: int, dim: int, device: torch.device | None = N
     cols = sincos_1d(torch.arange(width, device=device), dim // 2)
     grid = torch.cat([rows[:, None].expand(height, width, -1), cols[None, :].expand(height, width, -1)], dim=-1)
     return rearrange(grid, "h w d -> (h w) d")
+
+
+def sincos_2d_at(rows: torch.Tensor, cols: torch.Tensor, dim: int) -> torch.Tensor:
+    """(..., dim) features of continuous grid positions (rows, cols of the same shape), laid out as `sincos_2d`:
+    at whole positions the entries of its table, so a point can be keyed by the code its grid cells carry."""
+    if dim % 4:
+        raise ValueError(f"sincos_2d_at: dim={dim} must be divisible by 4")
+    return torch.cat([sincos_1d(rows, dim // 2), sincos_1d(cols, dim // 2)], dim=-1)
 
 
 def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, **kwargs) -> torch.Tensor:

@@ -231,3 +231,31 @@ def test_activation_checkpointing_in_training_gives_the_same_output_and_gradient
     assert len(plain_grads) == len(checked_grads) > 0
     for a, b in zip(plain_grads, checked_grads):
         torch.testing.assert_close(a, b)
+
+
+def test_position_keys_carry_the_grid_code_at_the_box_centre_and_the_camera_embedding() -> None:
+    from gaia_app.nn.spacetime import sincos_2d
+    net, cond = model(agent_position_keys=True, patch_size=2), conditions()
+    plain = model(patch_size=2)
+    grid = (4, 7)
+    with torch.no_grad():
+        keyed, boxes, visible = net.conditioner.agent_features(cond, grid)
+        unkeyed, _, _ = plain.conditioner.agent_features(cond)
+        added = keyed - unkeyed  # same weights (seeded), so the difference is the key alone
+        camera = net.conditioner.camera_embedding(cond)  # what every image token of a camera gets
+    b, t, v, n = torch.nonzero(visible)[0].tolist()
+    x0, y0, x1, y1 = boxes[b, t, v, n].tolist()
+    row, col = (y0 + y1) / 2 * grid[0] - 0.5, (x0 + x1) / 2 * grid[1] - 0.5
+    table = sincos_2d(*grid, net.dim)
+    nearest = round(min(max(row, 0), grid[0] - 1)) * grid[1] + round(min(max(col, 0), grid[1] - 1))
+    code = added[b, t, v, n] - camera[b, v]
+    assert int((table - code).norm(dim=-1).argmin()) == nearest  # closest to the code of the cell under the centre
+    with pytest.raises(ValueError, match="token grid"):
+        net.conditioner.agent_features(cond)
+
+
+def test_position_keys_change_the_velocity_only_through_the_agents() -> None:
+    keyed, plain, (x, tau), cond = model(agent_position_keys=True), model(), latents(), conditions()
+    with torch.no_grad():
+        assert not torch.allclose(keyed(x, tau, cond), plain(x, tau, cond))
+        torch.testing.assert_close(keyed(x, tau, cond.without("agents")), plain(x, tau, cond.without("agents")))

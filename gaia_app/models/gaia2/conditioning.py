@@ -35,7 +35,7 @@ from einops import rearrange
 from torch import nn
 
 from gaia_app.models.gaia2.ego_flow import ego_motion_flow, step_seconds
-from gaia_app.nn.spacetime import sincos_1d
+from gaia_app.nn.spacetime import sincos_1d, sincos_2d_at
 
 CONDITIONS = ("action", "agents", "metadata", "text")
 FLOW_UNIT = 2.0  # cells: ego-motion flows are divided by it before the action raster's MLP (most lie within ± 4)
@@ -172,15 +172,19 @@ class WorldConditioner(nn.Module):
         agent_categories: number of agent categories.
         agent_raster: also paint the agent tokens onto the grid cells their boxes cover (`grid_agents`).
         action_raster: also paint each step's ego-motion flow onto every cell (`grid_actions`).
+        agent_position_keys: add to each agent token the grid's own position code at its box centre and its
+            camera's token embedding (`position_keys`), the codes its image tokens carry, so that cross-attention
+            can match a token to the agents over it (DETR's shared positional codes); still cross-attention only.
         dropout: {condition: probability} of dropping it per sample while training (classifier-free
             guidance; the report: "aggressive" dropout).
     """
 
     def __init__(self, dim: int, metadata_fields: Mapping[str, int], text_dim: int = 0,
                  agent_categories: int = 8, dropout: Mapping[str, float] | None = None, agent_raster: bool = False,
-                 action_raster: bool = False):
+                 action_raster: bool = False, agent_position_keys: bool = False):
         super().__init__()
         self.dim = dim
+        self.agent_position_keys = agent_position_keys
         self.tau = mlp(dim, dim)
         self.action = mlp(2 * (dim // 2), dim)
         self.null_action = nn.Parameter(torch.zeros(dim))
@@ -288,8 +292,9 @@ class WorldConditioner(nn.Module):
         painted = self.action_raster(flow / FLOW_UNIT)
         return painted * keep["action"][:, None, None, None, None, None].to(painted.dtype)
 
-    def agent_features(self, cond: WorldConditions) -> AgentFeatures:
-        """Agent tokens (b, t, v, N, d), their boxes (b, t, v, N, 4) and visibility (b, t, v, N) in every camera."""
+    def agent_features(self, cond: WorldConditions, grid: tuple[int, int] | None = None) -> AgentFeatures:
+        """Agent tokens (b, t, v, N, d), their boxes (b, t, v, N, 4) and visibility (b, t, v, N) in every camera.
+        grid (gh, gw): the token cells per camera, needed with agent_position_keys."""
         agents = cond.agents
         boxes, depth, visible = project_boxes(agents, cond.intrinsics, cond.extrinsics, cond.image_size)
         v = boxes.shape[2]
@@ -299,7 +304,19 @@ class WorldConditioner(nn.Module):
                               torch.log1p(size)], dim=-1)
         tokens = self.agent_geometry(geometry) + self.agent_category(agents.category)[:, :, None]
         tokens = tokens + self.agent_camera(self.camera_features(cond))[:, None, :, None]
+        if self.agent_position_keys:
+            tokens = tokens + self.position_keys(cond, boxes, grid)
         return tokens, boxes, visible
+
+    def position_keys(self, cond: WorldConditions, boxes: torch.Tensor, grid: tuple[int, int] | None
+                      ) -> torch.Tensor:
+        """(b, t, v, N, d): `sincos_2d_at` of each box centre in token cells (cell i's centre at i, as the grid's
+        table) plus the camera embedding its camera's image tokens get. boxes (b, t, v, N, 4) in [0, 1]."""
+        if grid is None:
+            raise ValueError("agent_position_keys: agent_features needs the token grid (gh, gw)")
+        rows = (boxes[..., 1] + boxes[..., 3]) / 2 * grid[0] - 0.5
+        cols = (boxes[..., 0] + boxes[..., 2]) / 2 * grid[1] - 0.5
+        return sincos_2d_at(rows, cols, self.dim).to(boxes.dtype) + self.camera_embedding(cond)[:, None, :, None]
 
     def metadata_tokens(self, metadata: Mapping[str, torch.Tensor], b: int) -> torch.Tensor:
         """(b, F, d): one token per known field present, its value embedding plus a field embedding."""

@@ -38,8 +38,8 @@ class LatentWorldModel(nn.Module):
         latent_channels: C of the video tokenizer (paper 64).
         patch_size: p, latent positions per token side (1: one token per latent position).
         dim, depth, heads, mlp_ratio: transformer (paper 22 layers, ≈ 8.4B parameters).
-        metadata_fields, text_dim, agent_categories, condition_dropout, agent_raster, action_raster: see
-            WorldConditioner.
+        metadata_fields, text_dim, agent_categories, condition_dropout, agent_raster, action_raster,
+            agent_position_keys: see WorldConditioner.
         checkpointing: activation checkpointing of the blocks.
     """
 
@@ -48,12 +48,13 @@ class LatentWorldModel(nn.Module):
     def __init__(self, latent_channels: int = 64, patch_size: int = 1, dim: int = 512, depth: int = 8, heads: int = 8,
                  mlp_ratio: float = 4.0, metadata_fields: Mapping[str, int] | None = None, text_dim: int = 0,
                  agent_categories: int = 8, condition_dropout: Mapping[str, float] | None = None,
-                 checkpointing: bool = False, agent_raster: bool = False, action_raster: bool = False):
+                 checkpointing: bool = False, agent_raster: bool = False, action_raster: bool = False,
+                 agent_position_keys: bool = False):
         super().__init__()
         self.latent_channels, self.patch, self.dim = latent_channels, patch_size, dim
         self.patch_in = nn.Linear(latent_channels * patch_size**2, dim)
         self.conditioner = WorldConditioner(dim, metadata_fields or {}, text_dim, agent_categories,
-                                            condition_dropout, agent_raster, action_raster)
+                                            condition_dropout, agent_raster, action_raster, agent_position_keys)
         self.blocks = nn.ModuleList(AdaLNSpaceTimeBlock(dim, heads, dim, mlp_ratio) for _ in range(depth))
         self.norm_out = nn.LayerNorm(dim, elementwise_affine=False)
         self.modulation_out = nn.Sequential(nn.SiLU(), nn.Linear(dim, 2 * dim))
@@ -125,7 +126,8 @@ class LatentWorldModel(nn.Module):
         b, v, t, _, h, w = x.shape
         keep = self.conditioner.keep_masks(b, x.device)
         # agent tokens once per forward: both the grid painting and the cross-attention use them
-        agents = self.conditioner.agent_features(cond) if cond.active("agents") else None
+        grid = (h // self.patch, w // self.patch)
+        agents = self.conditioner.agent_features(cond, grid) if cond.active("agents") else None
         tokens = self.embed(x, cond, keep, agents)
         if positions is not None:
             tokens = tokens[:, :, positions]
