@@ -61,7 +61,7 @@ class AttentionRecorder:
 
 def token_coverage(net: LatentWorldModel, cond: Any, grid: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
     """(t, v·gh·gw, v·N) bool: agent j's box covers image token i in i's own camera; and (t, v·N) visible."""
-    _, boxes, visible = net.conditioner.agent_features(cond)  # boxes (1, t, v, N, 4), visible (1, t, v, N)
+    _, boxes, visible = net.conditioner.agent_features(cond, grid)  # boxes (1, t, v, N, 4), visible (1, t, v, N)
     cover = (cell_coverage(boxes[0], grid) > 0) & visible[0][..., None, None]  # (t, v, N, gh, gw)
     t, v, n = cover.shape[:3]
     own = torch.zeros(t, v, grid[0] * grid[1], v, n, dtype=torch.bool)

@@ -48,6 +48,12 @@ def test_masses_are_shares_and_the_raster_acts_inside_the_boxes(tmp_path: Path) 
     assert "| w | 1 |" in table and "effect of the agents" in table
 
 
+def test_a_net_with_position_keys_is_read_too(tmp_path: Path) -> None:
+    net = perturbed(agent_position_keys=True)
+    row = window_report(net, *window(cache(tmp_path / "val"), net), noise_seed=0)
+    assert row is not None and row["effect_inside"] > 0
+
+
 def test_a_window_without_visible_agents_is_skipped(tmp_path: Path) -> None:
     net = perturbed()
     x, cond = window(cache(tmp_path / "val"), net)
