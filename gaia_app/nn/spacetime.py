@@ -35,12 +35,8 @@ def sincos_1d(positions: torch.Tensor, dim: int, base: float = 10_000.0) -> torc
 
 def sincos_2d(height: int, width: int, dim: int, device: torch.device | None = None) -> torch.Tensor:
     """(h·w, dim) position table of a row-major h×w grid: half the channels encode the row, half the column."""
-    if dim % 4:
-        raise ValueError(f"sincos_2d: dim={dim} must be divisible by 4")
-    rows = sincos_1d(torch.arange(height, device=device), dim // 2)
-    cols = sincos_1d(torch.arange(width, device=device), dim // 2)
-    grid = torch.cat([rows[:, None].expand(height, width, -1), cols[None, :].expand(height, width, -1)], dim=-1)
-    return rearrange(grid, "h w d -> (h w) d")
+    rows, cols = torch.meshgrid(torch.arange(height, device=device), torch.arange(width, device=device), indexing="ij")
+    return sincos_2d_at(rows.flatten(), cols.flatten(), dim)
 
 
 def sincos_2d_at(rows: torch.Tensor, cols: torch.Tensor, dim: int) -> torch.Tensor:
