@@ -195,14 +195,19 @@ class AdaLNSpaceTimeBlock(nn.Module):
         nn.init.zeros_(self.modulation[-1].weight)
         nn.init.zeros_(self.modulation[-1].bias)
 
-    def forward(self, x: torch.Tensor, c: torch.Tensor, context: torch.Tensor, context_mask: torch.Tensor | None = None
-                ) -> torch.Tensor:
-        """x (b, t, n, d); c (b, t, d); context (b, t, m, d_c); context_mask (b, t, m) bool or None."""
+    def forward(self, x: torch.Tensor, c: torch.Tensor, context: torch.Tensor, context_mask: torch.Tensor | None = None,
+                query_position: torch.Tensor | None = None) -> torch.Tensor:
+        """x (b, t, n, d); c (b, t, d); context (b, t, m, d_c); context_mask (b, t, m) bool or None;
+        query_position (b or 1, 1, n, d) or None: a code added to the cross-attention's queries only (DETR adds its
+        positional codes to the queries and keys of every attention layer, never to the values)."""
         b, t = x.shape[:2]
         shift1, scale1, gate1, shift2, scale2, gate2, shift3, scale3, gate3 = self.modulation(c).chunk(9, dim=-1)
         spatial = rearrange(modulate(self.norm_space(x), shift1, scale1), "b t n d -> (b t) n d")
         x = x + gate1[:, :, None] * rearrange(self.space(spatial), "(b t) n d -> b t n d", b=b)
-        queries = rearrange(self.norm_cross(x), "b t n d -> (b t) n d")
+        queries = self.norm_cross(x)
+        if query_position is not None:
+            queries = queries + query_position
+        queries = rearrange(queries, "b t n d -> (b t) n d")
         mask = None if context_mask is None else rearrange(context_mask, "b t m -> (b t) m")
         cross = self.cross(queries, rearrange(context, "b t m d -> (b t) m d"), mask)
         x = x + rearrange(cross, "(b t) n d -> b t n d", b=b)

@@ -259,3 +259,43 @@ def test_position_keys_change_the_velocity_only_through_the_agents() -> None:
     with torch.no_grad():
         assert not torch.allclose(keyed(x, tau, cond), plain(x, tau, cond))
         torch.testing.assert_close(keyed(x, tau, cond.without("agents")), plain(x, tau, cond.without("agents")))
+
+
+def test_position_queries_are_the_codes_the_image_tokens_carry() -> None:
+    """agent_position_queries: each image token's query code is the grid code plus its camera's embedding, exactly
+    what `embed` adds to that token (so it matches the key an agent over it gets); it needs the keys."""
+    from gaia_app.nn.spacetime import sincos_2d
+    net, cond = model(agent_position_keys=True, agent_position_queries=True), conditions()
+    grid = (8, 14)
+    with torch.no_grad():
+        codes = net.query_positions(cond, grid, torch.float32)
+        camera = net.conditioner.camera_embedding(cond)
+    assert codes.shape == (1, 1, 3 * 8 * 14, net.dim)
+    per_camera = rearrange(codes[0, 0], "(v n) d -> v n d", v=3)
+    torch.testing.assert_close(per_camera, sincos_2d(*grid, net.dim)[None] + camera[0][:, None])
+    with pytest.raises(ValueError, match="agent_position_keys"):
+        model(agent_position_queries=True)
+
+
+def test_position_queries_reach_only_the_cross_attention_on_full_and_subset_grids() -> None:
+    """A zero query code is the keys-only model, on the full grid and on a subset of token positions (the
+    selective-guidance pass); the codes themselves change the velocity; checkpointing gives the same output."""
+    x, tau = latents()
+    cond = conditions()
+    positions = torch.tensor([0, 17, 200, 335])
+    keys_only = model(agent_position_keys=True)
+    queried = model(agent_position_keys=True, agent_position_queries=True)
+    codes = queried.query_positions
+    queried.query_positions = lambda cond, grid, dtype: torch.zeros_like(codes(cond, grid, dtype))
+    with torch.no_grad():
+        torch.testing.assert_close(queried(x, tau, cond), keys_only(x, tau, cond))
+        torch.testing.assert_close(queried(x, tau, cond, positions=positions),
+                                   keys_only(x, tau, cond, positions=positions))
+        del queried.query_positions
+        assert not torch.allclose(queried(x, tau, cond), keys_only(x, tau, cond))
+        assert not torch.allclose(queried(x, tau, cond, positions=positions),
+                                  keys_only(x, tau, cond, positions=positions))
+    checked = model(agent_position_keys=True, agent_position_queries=True, checkpointing=True).train()
+    plain = model(agent_position_keys=True, agent_position_queries=True).train()
+    checked.conditioner.dropout = plain.conditioner.dropout = {}
+    torch.testing.assert_close(checked(x, tau, cond), plain(x, tau, cond))

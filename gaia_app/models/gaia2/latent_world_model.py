@@ -40,6 +40,9 @@ class LatentWorldModel(nn.Module):
         dim, depth, heads, mlp_ratio: transformer (paper 22 layers, ≈ 8.4B parameters).
         metadata_fields, text_dim, agent_categories, condition_dropout, agent_raster, action_raster,
             agent_position_keys: see WorldConditioner.
+        agent_position_queries: with agent_position_keys, also add each image token's own position code (the
+            grid's sin-cos code and its camera's embedding, the codes the keys get at the box centre) to the
+            cross-attention's queries in every block, as DETR does; the residual stream itself is unchanged.
         checkpointing: activation checkpointing of the blocks.
     """
 
@@ -49,8 +52,12 @@ class LatentWorldModel(nn.Module):
                  mlp_ratio: float = 4.0, metadata_fields: Mapping[str, int] | None = None, text_dim: int = 0,
                  agent_categories: int = 8, condition_dropout: Mapping[str, float] | None = None,
                  checkpointing: bool = False, agent_raster: bool = False, action_raster: bool = False,
-                 agent_position_keys: bool = False):
+                 agent_position_keys: bool = False, agent_position_queries: bool = False):
         super().__init__()
+        if agent_position_queries and not agent_position_keys:
+            raise ValueError("agent_position_queries=True needs agent_position_keys=True: the queries' position codes "
+                             "match nothing in agent tokens without keys")
+        self.agent_position_queries = agent_position_queries
         self.latent_channels, self.patch, self.dim = latent_channels, patch_size, dim
         self.patch_in = nn.Linear(latent_channels * patch_size**2, dim)
         self.conditioner = WorldConditioner(dim, metadata_fields or {}, text_dim, agent_categories,
@@ -118,6 +125,13 @@ class LatentWorldModel(nn.Module):
             tokens = tokens + rearrange(flow, "b t v h w d -> b t v (h w) d")
         return rearrange(tokens, "b t v n d -> b t (v n) d")
 
+    def query_positions(self, cond: WorldConditions, grid: tuple[int, int], dtype: torch.dtype) -> torch.Tensor:
+        """(b, 1, v·gh·gw, d): each image token's grid code plus its camera's embedding, the codes
+        `WorldConditioner.position_keys` gives an agent at its box centre (agent_position_queries)."""
+        space = sincos_2d(*grid, self.dim, cond.intrinsics.device).to(dtype)  # (gh·gw, d)
+        camera = self.conditioner.camera_embedding(cond).to(dtype)  # (b, v, d)
+        return rearrange(space[None, None] + camera[:, :, None], "b v n d -> b 1 (v n) d")
+
     def forward(self, x: torch.Tensor, tau: torch.Tensor, cond: WorldConditions,
                 positions: torch.Tensor | None = None) -> torch.Tensor:
         """x (b, v, t, C, h, w), τ (b, t) → velocity (b, v, t, C, h, w); with `positions` (k,) indices into
@@ -129,15 +143,17 @@ class LatentWorldModel(nn.Module):
         grid = (h // self.patch, w // self.patch)
         agents = self.conditioner.agent_features(cond, grid) if cond.active("agents") else None
         tokens = self.embed(x, cond, keep, agents)
+        queries = self.query_positions(cond, grid, tokens.dtype) if self.agent_position_queries else None
         if positions is not None:
             tokens = tokens[:, :, positions]
+            queries = None if queries is None else queries[:, :, positions]
         c = self.conditioner.adaln(tau, cond, keep)
         context, mask = self.conditioner.context(cond, b, t, keep, x.device, agents)
         for block in self.blocks:
             if self.checkpointing and self.training:
-                tokens = checkpoint(block, tokens, c, context, mask, use_reentrant=False)
+                tokens = checkpoint(block, tokens, c, context, mask, queries, use_reentrant=False)
             else:
-                tokens = block(tokens, c, context, mask)
+                tokens = block(tokens, c, context, mask, queries)
         shift, scale = self.modulation_out(c).chunk(2, dim=-1)
         out = self.patch_out(self.norm_out(tokens) * (1 + scale[:, :, None]) + shift[:, :, None])
         if positions is not None:
