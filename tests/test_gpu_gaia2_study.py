@@ -23,7 +23,7 @@ def test_each_arm_gets_its_experiment_budget_and_options(study, tmp_path: Path) 
     paper = study.train_command("paper", 250, latents, tmp_path / "run", 300, dry=False)
     assert {"experiment=gaia2/road_users/world_model_s4_paper_gpu", "trainer.max_steps=250",
             f"data.path={latents}", "+trainer.max_time=00:00:04:15"} <= set(paper)
-    keyed = study.train_command("paper_posqk", 1200, latents, tmp_path / "run", 300, dry=False)
+    keyed = study.train_command("paper_posqk", 2000, latents, tmp_path / "run", 300, dry=False)
     assert {"model.net.agent_position_keys=true", "model.net.agent_position_queries=true",
             "trainer.val_check_interval=1000"} <= set(keyed)
     shortcut = study.train_command("shortcut", 1200, latents, tmp_path / "run", 300, dry=False)
