@@ -29,7 +29,7 @@ from einops import rearrange
 from tqdm import tqdm
 
 from gaia_app.data.latent_cache import find_latent_clips, read_latent_clip
-from gaia_app.models.gaia2.conditioning import cell_coverage
+from gaia_app.models.gaia2.conditioning import own_camera_coverage
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
 from gaia_app.nn.spacetime import CrossAttention
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline
@@ -51,7 +51,8 @@ class AttentionRecorder:
         k, _ = rearrange(module.to_kv(context), "b m (two h e) -> two b h m e", two=2, h=module.heads)
         logits = torch.einsum("bhne,bhme->bhnm", q.float(), k.float()) / q.shape[-1] ** 0.5
         if mask is not None:
-            logits = logits.masked_fill(~mask[:, None, None, :], float("-inf"))
+            keys = mask[:, None, None, :] if mask.ndim == 2 else mask[:, None]  # (B, m) or per query (B, n, m)
+            logits = logits.masked_fill(~keys, float("-inf"))
         self.weights.append(logits.softmax(dim=-1))
 
     def close(self) -> None:
@@ -62,12 +63,7 @@ class AttentionRecorder:
 def token_coverage(net: LatentWorldModel, cond: Any, grid: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
     """(t, v·gh·gw, v·N) bool: agent j's box covers image token i in i's own camera; and (t, v·N) visible."""
     _, boxes, visible = net.conditioner.agent_features(cond, grid)  # boxes (1, t, v, N, 4), visible (1, t, v, N)
-    cover = (cell_coverage(boxes[0], grid) > 0) & visible[0][..., None, None]  # (t, v, N, gh, gw)
-    t, v, n = cover.shape[:3]
-    own = torch.zeros(t, v, grid[0] * grid[1], v, n, dtype=torch.bool)
-    for camera in range(v):
-        own[:, camera, :, camera] = rearrange(cover[:, camera], "t n h w -> t (h w) n")
-    return rearrange(own, "t v c u n -> t (v c) (u n)"), rearrange(visible[0], "t v n -> t (v n)")
+    return own_camera_coverage(boxes, visible, grid)[0], rearrange(visible[0], "t v n -> t (v n)")
 
 
 def window_report(net: LatentWorldModel, x: torch.Tensor, cond: Any, noise_seed: int) -> dict[str, Any] | None:

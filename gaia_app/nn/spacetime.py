@@ -141,7 +141,8 @@ def spacetime_positions(steps: int, height: int, width: int, dim: int, device: t
 
 
 class CrossAttention(nn.Module):
-    """Queries from x (B, n, d) attend to a context (B, m, d_c) where `mask` (B, m) is True; → (B, n, d).
+    """Queries from x (B, n, d) attend to a context (B, m, d_c) where `mask` (B, m), or (B, n, m) per query, is
+    True; → (B, n, d).
 
     Every row of `mask` must keep at least one key (conditioners always supply a null token), or SDPA
     would average over nothing.
@@ -159,7 +160,7 @@ class CrossAttention(nn.Module):
     def forward(self, x: torch.Tensor, context: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         q = rearrange(self.to_q(x), "b n (h e) -> b h n e", h=self.heads)
         k, v = rearrange(self.to_kv(context), "b m (two h e) -> two b h m e", two=2, h=self.heads)
-        attn_mask = None if mask is None else mask[:, None, None, :]
+        attn_mask = None if mask is None else mask[:, None, None, :] if mask.ndim == 2 else mask[:, None]
         out = attention(q, k, v, attn_mask=attn_mask, dropout_p=self.dropout if self.training else 0.0)
         return self.to_out(rearrange(out, "b h n e -> b n (h e)"))
 
@@ -197,7 +198,8 @@ class AdaLNSpaceTimeBlock(nn.Module):
 
     def forward(self, x: torch.Tensor, c: torch.Tensor, context: torch.Tensor, context_mask: torch.Tensor | None = None,
                 query_position: torch.Tensor | None = None) -> torch.Tensor:
-        """x (b, t, n, d); c (b, t, d); context (b, t, m, d_c); context_mask (b, t, m) bool or None;
+        """x (b, t, n, d); c (b, t, d); context (b, t, m, d_c); context_mask (b, t, m) or, per token, (b, t, n, m)
+        bool, or None;
         query_position (b or 1, 1, n, d) or None: a code added to the cross-attention's queries only (DETR adds its
         positional codes to the queries and keys of every attention layer, never to the values)."""
         b, t = x.shape[:2]
@@ -208,7 +210,7 @@ class AdaLNSpaceTimeBlock(nn.Module):
         if query_position is not None:
             queries = queries + query_position
         queries = rearrange(queries, "b t n d -> (b t) n d")
-        mask = None if context_mask is None else rearrange(context_mask, "b t m -> (b t) m")
+        mask = None if context_mask is None else rearrange(context_mask, "b t ... m -> (b t) ... m")
         cross = self.cross(queries, rearrange(context, "b t m d -> (b t) m d"), mask)
         x = x + rearrange(cross, "(b t) n d -> b t n d", b=b)
         if t > 1:

@@ -299,3 +299,51 @@ def test_position_queries_reach_only_the_cross_attention_on_full_and_subset_grid
     plain = model(agent_position_keys=True, agent_position_queries=True).train()
     checked.conditioner.dropout = plain.conditioner.dropout = {}
     torch.testing.assert_close(checked(x, tau, cond), plain(x, tau, cond))
+
+
+def test_own_camera_coverage_pairs_each_token_with_the_agents_over_it_in_its_camera() -> None:
+    from gaia_app.models.gaia2.conditioning import cell_coverage, own_camera_coverage
+    net, cond, grid = model(), conditions(), (8, 14)
+    _, boxes, visible = net.conditioner.agent_features(cond)
+    own = own_camera_coverage(boxes, visible, grid)  # (1, t, v·cells, v·N)
+    cover = (cell_coverage(boxes, grid) > 0) & visible[..., None, None]
+    v, n, cells = boxes.shape[2], boxes.shape[3], grid[0] * grid[1]
+    assert own.shape == (1, 3, v * cells, v * n) and own.any()
+    for t in range(3):
+        for camera in range(v):
+            for agent_camera in range(v):
+                block = own[0, t, camera * cells:(camera + 1) * cells, agent_camera * n:(agent_camera + 1) * n]
+                expected = rearrange(cover[0, t, camera], "n h w -> (h w) n") if camera == agent_camera else False
+                assert torch.equal(block, torch.as_tensor(expected).expand_as(block))
+
+
+def test_box_attention_lets_a_token_read_only_the_agents_over_it() -> None:
+    """agent_box_attention: in the first block, the cross-attention output of a token no box covers is the same
+    with the agents as without them; under a box it changes. The per-token mask reaches the subset path too."""
+    from gaia_app.models.gaia2.conditioning import own_camera_coverage
+    net, cond, (x, tau) = model(agent_box_attention=True), conditions(), latents()
+    outputs = []
+    handle = net.blocks[0].cross.register_forward_hook(lambda _m, _i, out: outputs.append(out))
+    with torch.no_grad():
+        net(x, tau, cond)
+        net(x, tau, cond.without("agents"))
+        subset = net(x, tau, cond, positions=torch.tensor([0, 5, 9]))
+    handle.remove()
+    _, boxes, visible = net.conditioner.agent_features(cond)
+    covered = rearrange(own_camera_coverage(boxes, visible, (8, 14)).any(-1), "b t n -> (b t) n")
+    with_agents, without = outputs[:2]
+    assert covered.any() and not covered.all()
+    torch.testing.assert_close(with_agents[~covered], without[~covered])
+    assert not torch.allclose(with_agents[covered], without[covered])
+    assert subset.shape == (1, 3, 3, 8)
+
+
+def test_cross_attention_per_query_mask_equals_the_shared_mask_when_rows_agree() -> None:
+    from gaia_app.nn.spacetime import CrossAttention
+    torch.manual_seed(0)
+    attn = CrossAttention(16, 16, 4).eval()
+    x, context = torch.randn(2, 5, 16), torch.randn(2, 7, 16)
+    mask = torch.rand(2, 7) > 0.4
+    mask[:, 0] = True
+    with torch.no_grad():
+        torch.testing.assert_close(attn(x, context, mask[:, None].expand(2, 5, 7)), attn(x, context, mask))

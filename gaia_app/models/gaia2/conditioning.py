@@ -152,6 +152,16 @@ def cell_coverage(boxes: torch.Tensor, grid: tuple[int, int]) -> torch.Tensor:
     return down[..., :, None] * across[..., None, :]
 
 
+def own_camera_coverage(boxes: torch.Tensor, visible: torch.Tensor, grid: tuple[int, int]) -> torch.Tensor:
+    """(b, t, v·gh·gw, v·N) bool: agent j's projected box covers image token i's cell in i's own camera (the token
+    and agent orders of the net's sequence and context). boxes (b, t, v, N, 4) in [0, 1], visible (b, t, v, N)."""
+    cover = (cell_coverage(boxes, grid) > 0) & visible[..., None, None]  # (b, t, v, N, gh, gw)
+    v = cover.shape[2]
+    by_cell = rearrange(cover, "b t v n h w -> b t v (h w) 1 n")  # the query's camera v is the agent's
+    same_camera = torch.eye(v, dtype=torch.bool, device=boxes.device)[:, None, :, None]  # (v, 1, u, 1)
+    return rearrange(by_cell & same_camera, "b t v c u n -> b t (v c) (u n)")
+
+
 def fourier(x: torch.Tensor, dim: int, scale: float) -> torch.Tensor:
     """Sine-cosine features (…, dim) of a scalar tensor (…) multiplied by `scale` (positions in that unit)."""
     return sincos_1d((x * scale).flatten(), dim).reshape(*x.shape, dim)
@@ -281,6 +291,18 @@ class WorldConditioner(nn.Module):
         cover = cell_coverage(boxes, grid) * (visible & keep["agents"][:, None, None, None])[..., None, None]
         painted = torch.einsum("btvnhw,btvnd->btvhwd", cover.to(tokens.dtype), tokens)
         return self.agent_raster(painted)
+
+    @staticmethod
+    def box_attention_mask(agents: AgentFeatures, grid: tuple[int, int], mask: torch.Tensor) -> torch.Tensor:
+        """(b, t, v·gh·gw, m): the context mask (b, t, m) per image token, its agent keys (context positions 1 …
+        v·N, after the null token) kept only for the agents whose boxes cover the token's cell in its camera
+        (agent_box_attention); the null, metadata and text keys stay as `mask` has them."""
+        _, boxes, visible = agents
+        own = own_camera_coverage(boxes, visible, grid)  # (b, t, n, v·N)
+        per_token = mask[:, :, None, :].expand(-1, -1, own.shape[2], -1).clone()
+        agent_keys = slice(1, 1 + own.shape[-1])
+        per_token[..., agent_keys] &= own
+        return per_token
 
     def grid_actions(self, cond: WorldConditions, grid: tuple[int, int], keep: Mapping[str, torch.Tensor]
                      ) -> torch.Tensor:

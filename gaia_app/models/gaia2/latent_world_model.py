@@ -43,6 +43,9 @@ class LatentWorldModel(nn.Module):
         agent_position_queries: with agent_position_keys, also add each image token's own position code (the
             grid's sin-cos code and its camera's embedding, the codes the keys get at the box centre) to the
             cross-attention's queries in every block, as DETR does; the residual stream itself is unchanged.
+        agent_box_attention: each image token's cross-attention reads only the agents whose projected boxes cover
+            its cell in its own camera (and every null, metadata and text token), a masked cross-attention in the
+            manner of Mask2Former; nothing is painted on the grid.
         checkpointing: activation checkpointing of the blocks.
     """
 
@@ -52,12 +55,14 @@ class LatentWorldModel(nn.Module):
                  mlp_ratio: float = 4.0, metadata_fields: Mapping[str, int] | None = None, text_dim: int = 0,
                  agent_categories: int = 8, condition_dropout: Mapping[str, float] | None = None,
                  checkpointing: bool = False, agent_raster: bool = False, action_raster: bool = False,
-                 agent_position_keys: bool = False, agent_position_queries: bool = False):
+                 agent_position_keys: bool = False, agent_position_queries: bool = False,
+                 agent_box_attention: bool = False):
         super().__init__()
         if agent_position_queries and not agent_position_keys:
             raise ValueError("agent_position_queries=True needs agent_position_keys=True: the queries' position codes "
                              "match nothing in agent tokens without keys")
         self.agent_position_queries = agent_position_queries
+        self.agent_box_attention = agent_box_attention
         self.latent_channels, self.patch, self.dim = latent_channels, patch_size, dim
         self.patch_in = nn.Linear(latent_channels * patch_size**2, dim)
         self.conditioner = WorldConditioner(dim, metadata_fields or {}, text_dim, agent_categories,
@@ -149,6 +154,9 @@ class LatentWorldModel(nn.Module):
             queries = None if queries is None else queries[:, :, positions]
         c = self.conditioner.adaln(tau, cond, keep)
         context, mask = self.conditioner.context(cond, b, t, keep, x.device, agents)
+        if self.agent_box_attention and agents is not None:
+            mask = self.conditioner.box_attention_mask(agents, grid, mask)
+            mask = mask if positions is None else mask[:, :, positions]
         for block in self.blocks:
             if self.checkpointing and self.training:
                 tokens = checkpoint(block, tokens, c, context, mask, queries, use_reentrant=False)
