@@ -9,7 +9,8 @@ For each weights folder, on the first `--windows` clips of a held-out latent cac
 
 - per block, the cross-attention mass that image tokens give the agent tokens (averaged over heads), for tokens inside
   a visible agent box of their own camera and for tokens outside every box; for the inside tokens also the mass on the
-  agents whose boxes cover them ("own agent"); beside it the share a uniform attention would give the agents;
+  agents whose boxes cover them ("own agent"); beside it the share a uniform attention over the keys an inside token
+  may read would give the agents (with `agent_box_attention` only those over it);
 - the agents' effect on the prediction: RMS of v(agents) − v(agents dropped) inside and outside the boxes, over the RMS
   of v. A conditioning path that localises puts its mass and its effect inside the boxes.
 
@@ -43,6 +44,7 @@ class AttentionRecorder:
 
     def __init__(self, net: LatentWorldModel):
         self.weights: list[torch.Tensor] = []
+        self.keys: list[torch.Tensor] = []  # the keys each query may read (B, n, m)
         self.handles = [block.cross.register_forward_hook(self.record) for block in net.blocks]
 
     def record(self, module: CrossAttention, inputs: tuple, _output: torch.Tensor) -> None:
@@ -53,6 +55,9 @@ class AttentionRecorder:
         if mask is not None:
             keys = mask[:, None, None, :] if mask.ndim == 2 else mask[:, None]  # (B, m) or per query (B, n, m)
             logits = logits.masked_fill(~keys, float("-inf"))
+            self.keys.append(keys[:, 0].expand(-1, x.shape[1], -1))
+        else:
+            self.keys.append(torch.ones(x.shape[0], x.shape[1], context.shape[1], dtype=torch.bool))
         self.weights.append(logits.softmax(dim=-1))
 
     def close(self) -> None:
@@ -87,14 +92,13 @@ def window_report(net: LatentWorldModel, x: torch.Tensor, cond: Any, noise_seed:
         without = net(x_tau, tau, cond.without("agents"))
     agents = slice(1, 1 + visible.shape[-1])  # the context: null, agents (v·N), metadata, text
     blocks = []
-    for weights in recorder.weights:
+    for weights, keys in zip(recorder.weights, recorder.keys):
         mass = weights.mean(dim=1)  # (t, n, m): batch 1, so (b t) = t
         on_agents = mass[..., agents].sum(-1)
         on_own = (mass[..., agents] * own).sum(-1)
-        keys = weights.shape[-1] - (visible.shape[-1] - visible.sum(-1))  # unmasked keys per step
+        uniform = keys[..., agents].sum(-1) / keys.sum(-1)  # the agents' share of the keys a token may read
         blocks.append({"inside": float(on_agents[inside].mean()), "outside": float(on_agents[~inside].mean()),
-                       "own_inside": float(on_own[inside].mean()),
-                       "uniform": float((visible.sum(-1) / keys).mean())})
+                       "own_inside": float(on_own[inside].mean()), "uniform": float(uniform[inside].mean())})
     cells = rearrange(inside, "t (v h w) -> v t h w", v=v, h=grid[0])
     cells = cells.repeat_interleave(net.patch, -2).repeat_interleave(net.patch, -1)[None, :, :, None]
     cells = cells.expand_as(with_agents)

@@ -44,6 +44,7 @@ ARMS = {
     "paper": ("gaia2/road_users/world_model_s4_paper_gpu", ()),
     "paper_posqk": ("gaia2/road_users/world_model_s4_paper_gpu",
                     ("model.net.agent_position_keys=true", "model.net.agent_position_queries=true")),
+    "paper_boxattn": ("gaia2/road_users/world_model_s4_paper_gpu", ("model.net.agent_box_attention=true",)),
 }
 # the study's clips (docs/paper_faithful.md): 960 of 32 frames on the 3-camera rig, half driven, 16 held out
 CLIPS = ["data=synthetic_rig", "data.source.num_clips=960", "data.source.clip_len=32", "data.source.driven_share=0.5",

@@ -59,3 +59,16 @@ def test_a_window_without_visible_agents_is_skipped(tmp_path: Path) -> None:
     x, cond = window(cache(tmp_path / "val"), net)
     cond.agents = None
     assert window_report(net, x, cond, noise_seed=0) is None
+
+
+def test_box_attention_puts_no_mass_outside_the_boxes_and_its_uniform_share_counts_only_the_keys_it_reads(
+        tmp_path: Path) -> None:
+    root = cache(tmp_path / "val")
+    rows = {}
+    for masked in (False, True):
+        net = perturbed(agent_box_attention=masked)
+        rows[masked] = window_report(net, *window(root, net), noise_seed=0)
+    for block in rows[True]["blocks"]:
+        assert block["outside"] == 0 and block["own_inside"] == block["inside"] > 0
+    for masked_block, plain_block in zip(rows[True]["blocks"], rows[False]["blocks"]):
+        assert 0 < masked_block["uniform"] <= plain_block["uniform"]
