@@ -68,13 +68,13 @@ def test_dry_run_encodes_trains_every_arm_and_brings_back_loadable_checkpoints(s
     data = study.main(["--out", str(tmp_path / "out"), "--work", str(tmp_path / "work"), "--dry-run",
                        "--steps", "2", "1"])
     stages = data["stages"]
-    runs = [f"{arm}_{steps}" for steps in (2, 1) for arm in ("shortcut", "paper", "paper_posqk")]
+    runs = [f"{arm}_{steps}" for steps in (2, 1) for arm in ("shortcut", "paper", "paper_boxattn")]
     assert all(stages[name]["status"] == "ok" for name in ["encode", *runs]), stages
     with tarfile.open(tmp_path / "out/gaia2_study.tar") as archive:
         archive.extractall(tmp_path / "back", filter="data")
     nets = {arm: checkpoint_nets(tmp_path / f"back/{arm}_2.ckpt", "latent_world_model", "world_model_ckpt")[0]["net"]
-            for arm in ("shortcut", "paper", "paper_posqk")}
+            for arm in ("shortcut", "paper", "paper_boxattn")}
     assert nets["shortcut"].conditioner.agent_raster is not None
-    assert nets["paper"].conditioner.agent_raster is None and not nets["paper"].agent_position_queries
-    assert nets["paper_posqk"].agent_position_queries and nets["paper_posqk"].conditioner.agent_position_keys
+    assert nets["paper"].conditioner.agent_raster is None and not nets["paper"].agent_box_attention
+    assert nets["paper_boxattn"].agent_box_attention and nets["paper_boxattn"].conditioner.agent_raster is None
     assert len(list((tmp_path / "out").iterdir())) <= 8
