@@ -261,37 +261,54 @@ def test_position_keys_change_the_velocity_only_through_the_agents() -> None:
         torch.testing.assert_close(keyed(x, tau, cond.without("agents")), plain(x, tau, cond.without("agents")))
 
 
+def queries_seen(net: LatentWorldModel, *args, **kwargs) -> torch.Tensor | None:
+    """The query codes the first block receives in one forward of `net`."""
+    seen = []
+    handle = net.blocks[0].register_forward_pre_hook(lambda _m, inputs: seen.append(inputs[4]))
+    with torch.no_grad():
+        net(*args, **kwargs)
+    handle.remove()
+    return seen[0]
+
+
 def test_position_queries_are_the_codes_the_image_tokens_carry() -> None:
     """agent_position_queries: each image token's query code is the grid code plus its camera's embedding, exactly
-    what `embed` adds to that token (so it matches the key an agent over it gets); it needs the keys."""
+    what `embed` adds to that token (so it matches the key an agent over it gets), on a token subset too; it needs
+    the keys."""
     from gaia_app.nn.spacetime import sincos_2d
-    net, cond = model(agent_position_keys=True, agent_position_queries=True), conditions()
+    net, cond, (x, tau) = model(agent_position_keys=True, agent_position_queries=True), conditions(), latents()
     grid = (8, 14)
     with torch.no_grad():
-        codes = net.query_positions(cond, grid, torch.float32)
-        camera = net.conditioner.camera_embedding(cond)
-    assert codes.shape == (1, 1, 3 * 8 * 14, net.dim)
-    per_camera = rearrange(codes[0, 0], "(v n) d -> v n d", v=3)
-    torch.testing.assert_close(per_camera, sincos_2d(*grid, net.dim)[None] + camera[0][:, None])
+        expected = rearrange(sincos_2d(*grid, net.dim)[None] + net.conditioner.camera_embedding(cond)[0][:, None],
+                             "v n d -> 1 1 (v n) d")
+        codes = net.position_codes(cond, grid)
+        keep = net.conditioner.keep_masks(1, x.device)
+        added = net.embed(x, cond, keep, None, codes) - net.embed(x, cond, keep, None, torch.zeros_like(codes))
+    torch.testing.assert_close(queries_seen(net, x, tau, cond), expected)
+    torch.testing.assert_close(added, expected.expand_as(added))
+    positions = torch.tensor([0, 17, 200, 335])
+    torch.testing.assert_close(queries_seen(net, x, tau, cond, positions=positions), expected[:, :, positions])
+    assert queries_seen(model(agent_position_keys=True), x, tau, cond) is None
     with pytest.raises(ValueError, match="agent_position_keys"):
         model(agent_position_queries=True)
 
 
-def test_position_queries_reach_only_the_cross_attention_on_full_and_subset_grids() -> None:
-    """A zero query code is the keys-only model, on the full grid and on a subset of token positions (the
-    selective-guidance pass); the codes themselves change the velocity; checkpointing gives the same output."""
+def test_position_queries_reach_only_the_cross_attention_queries() -> None:
+    """In a block, a zero query code is no code, and a code changes only what the cross-attention adds; the model
+    with the codes differs from the keys-only one on full and subset grids; checkpointing gives the same output."""
+    from gaia_app.nn.spacetime import AdaLNSpaceTimeBlock
+    torch.manual_seed(0)
+    block = AdaLNSpaceTimeBlock(16, 4, 16).eval()
+    x, c, context = torch.randn(1, 2, 5, 16), torch.randn(1, 2, 16), torch.randn(1, 2, 3, 16)
+    with torch.no_grad():
+        torch.testing.assert_close(block(x, c, context, None, torch.zeros(1, 1, 5, 16)), block(x, c, context))
+        assert not torch.allclose(block(x, c, context, None, torch.randn(1, 1, 5, 16)), block(x, c, context))
     x, tau = latents()
     cond = conditions()
     positions = torch.tensor([0, 17, 200, 335])
     keys_only = model(agent_position_keys=True)
     queried = model(agent_position_keys=True, agent_position_queries=True)
-    codes = queried.query_positions
-    queried.query_positions = lambda cond, grid, dtype: torch.zeros_like(codes(cond, grid, dtype))
     with torch.no_grad():
-        torch.testing.assert_close(queried(x, tau, cond), keys_only(x, tau, cond))
-        torch.testing.assert_close(queried(x, tau, cond, positions=positions),
-                                   keys_only(x, tau, cond, positions=positions))
-        del queried.query_positions
         assert not torch.allclose(queried(x, tau, cond), keys_only(x, tau, cond))
         assert not torch.allclose(queried(x, tau, cond, positions=positions),
                                   keys_only(x, tau, cond, positions=positions))
@@ -319,23 +336,26 @@ def test_own_camera_coverage_pairs_each_token_with_the_agents_over_it_in_its_cam
 
 def test_box_attention_lets_a_token_read_only_the_agents_over_it() -> None:
     """agent_box_attention: in the first block, the cross-attention output of a token no box covers is the same
-    with the agents as without them; under a box it changes. The per-token mask reaches the subset path too."""
+    with the agents as without them; under a box it changes. The same holds on a token subset (the selective pass)."""
     from gaia_app.models.gaia2.conditioning import own_camera_coverage
     net, cond, (x, tau) = model(agent_box_attention=True), conditions(), latents()
+    _, boxes, visible = net.conditioner.agent_features(cond)
+    covered = rearrange(own_camera_coverage(boxes, visible, (8, 14)).any(-1), "b t n -> (b t) n")
+    assert covered.any() and not covered.all()
+    step = 0
+    positions = torch.cat([torch.nonzero(covered[step])[:3, 0], torch.nonzero(~covered[step])[:3, 0]])
     outputs = []
     handle = net.blocks[0].cross.register_forward_hook(lambda _m, _i, out: outputs.append(out))
     with torch.no_grad():
-        net(x, tau, cond)
-        net(x, tau, cond.without("agents"))
-        subset = net(x, tau, cond, positions=torch.tensor([0, 5, 9]))
+        for subset in (None, positions):
+            net(x, tau, cond, positions=subset)
+            net(x, tau, cond.without("agents"), positions=subset)
     handle.remove()
-    _, boxes, visible = net.conditioner.agent_features(cond)
-    covered = rearrange(own_camera_coverage(boxes, visible, (8, 14)).any(-1), "b t n -> (b t) n")
-    with_agents, without = outputs[:2]
-    assert covered.any() and not covered.all()
+    with_agents, without, subset_with, subset_without = outputs
     torch.testing.assert_close(with_agents[~covered], without[~covered])
     assert not torch.allclose(with_agents[covered], without[covered])
-    assert subset.shape == (1, 3, 3, 8)
+    torch.testing.assert_close(subset_with[step, 3:], subset_without[step, 3:])  # the uncovered three
+    assert not torch.allclose(subset_with[step, :3], subset_without[step, :3])
 
 
 def test_cross_attention_per_query_mask_equals_the_shared_mask_when_rows_agree() -> None:

@@ -257,15 +257,22 @@ class WorldConditioner(nn.Module):
         return keep
 
     def context(self, cond: WorldConditions, b: int, t: int, keep: Mapping[str, torch.Tensor], device: torch.device,
-                agents: AgentFeatures | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                agents: AgentFeatures | None = None, box_grid: tuple[int, int] | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
         """(b, t, m, d) tokens and (b, t, m) mask: null, agents (v·N), metadata (F), text. agents: the
-        `agent_features` of cond when the caller has them already."""
+        `agent_features` of cond when the caller has them already. box_grid (gh, gw): the mask per image token
+        instead, (b, t, v·gh·gw, m), each token's agent keys kept only for the agents whose boxes cover its cell in
+        its own camera (agent_box_attention; the other keys as for every token)."""
         tokens = [self.null_token.expand(b, t, 1, self.dim)]
         masks = [torch.ones(b, t, 1, dtype=torch.bool, device=device)]
+        own = None  # with box_grid: (b, t, v·cells, v·N), which agents each image token may read
         if cond.active("agents"):
+            agents = agents if agents is not None else self.agent_features(cond, box_grid)
             agent_tokens, visible = self.agent_tokens(cond, agents)
             tokens.append(agent_tokens)
             masks.append(visible & keep["agents"][:, None, None])
+            if box_grid is not None:
+                own = own_camera_coverage(agents[1], agents[2], box_grid)
         if cond.active("metadata"):
             meta = self.metadata_tokens(cond.metadata, b)
             tokens.append(meta[:, None].expand(b, t, -1, -1))
@@ -275,7 +282,11 @@ class WorldConditioner(nn.Module):
                 raise ValueError("WorldConditions.text given, but the model was built with text_dim=0")
             tokens.append(self.text(cond.text)[:, None, None].expand(b, t, 1, self.dim))
             masks.append(keep["text"][:, None, None].expand(b, t, 1))
-        return torch.cat(tokens, dim=2), torch.cat(masks, dim=2)
+        mask = torch.cat(masks, dim=2)
+        if own is not None:
+            mask = mask[:, :, None].expand(-1, -1, own.shape[2], -1).clone()
+            mask[..., 1 : 1 + own.shape[-1]] &= own  # the agent keys, right after the null token
+        return torch.cat(tokens, dim=2), mask
 
     def agent_tokens(self, cond: WorldConditions, agents: AgentFeatures | None = None
                      ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -291,18 +302,6 @@ class WorldConditioner(nn.Module):
         cover = cell_coverage(boxes, grid) * (visible & keep["agents"][:, None, None, None])[..., None, None]
         painted = torch.einsum("btvnhw,btvnd->btvhwd", cover.to(tokens.dtype), tokens)
         return self.agent_raster(painted)
-
-    @staticmethod
-    def box_attention_mask(agents: AgentFeatures, grid: tuple[int, int], mask: torch.Tensor) -> torch.Tensor:
-        """(b, t, v·gh·gw, m): the context mask (b, t, m) per image token, its agent keys (context positions 1 …
-        v·N, after the null token) kept only for the agents whose boxes cover the token's cell in its camera
-        (agent_box_attention); the null, metadata and text keys stay as `mask` has them."""
-        _, boxes, visible = agents
-        own = own_camera_coverage(boxes, visible, grid)  # (b, t, n, v·N)
-        per_token = mask[:, :, None, :].expand(-1, -1, own.shape[2], -1).clone()
-        agent_keys = slice(1, 1 + own.shape[-1])
-        per_token[..., agent_keys] &= own
-        return per_token
 
     def grid_actions(self, cond: WorldConditions, grid: tuple[int, int], keep: Mapping[str, torch.Tensor]
                      ) -> torch.Tensor:

@@ -44,8 +44,8 @@ class LatentWorldModel(nn.Module):
             grid's sin-cos code and its camera's embedding, the codes the keys get at the box centre) to the
             cross-attention's queries in every block, as DETR does; the residual stream itself is unchanged.
         agent_box_attention: each image token's cross-attention reads only the agents whose projected boxes cover
-            its cell in its own camera (and every null, metadata and text token), a masked cross-attention in the
-            manner of Mask2Former; nothing is painted on the grid.
+            its cell in its own camera (and every null, metadata and text token; `WorldConditioner.context` with
+            box_grid), a masked cross-attention in the manner of Mask2Former; nothing is painted on the grid.
         checkpointing: activation checkpointing of the blocks.
     """
 
@@ -111,17 +111,18 @@ class LatentWorldModel(nn.Module):
             raise ValueError(f"conditions.actions: expected (b, t, 2) = ({b}, {t}, 2), got {tuple(cond.actions.shape)}")
 
     def embed(self, x: torch.Tensor, cond: WorldConditions, keep: Mapping[str, torch.Tensor],
-              agents: AgentFeatures | None = None) -> torch.Tensor:
-        """Latents (b, v, t, C, h, w) → tokens (b, t, n, d) with position, camera and time embeddings, and the
+              agents: AgentFeatures | None = None, codes: torch.Tensor | None = None) -> torch.Tensor:
+        """Latents (b, v, t, C, h, w) → tokens (b, t, n, d) with position and camera codes (`position_codes`, computed
+        here unless the caller has them) and time embeddings, and the
         agents (the conditioner's `agent_features`) painted on the grid when it has agent_raster and `keep` keeps them,
         and each step's ego-motion flow when it has action_raster and the action is active."""
         b, v, t, _, h, w = x.shape
         p = self.patch
         tokens = self.patch_in(rearrange(x, "b v t c (h p) (w q) -> b t v (h w) (p q c)", p=p, q=p))
-        space = sincos_2d(h // p, w // p, self.dim, x.device).to(tokens.dtype)
-        camera = self.conditioner.camera_embedding(cond)[:, None, :, None]  # (b, 1, v, 1, d)
+        if codes is None:
+            codes = self.position_codes(cond, (h // p, w // p))
         time = self.conditioner.time_embedding(cond, t, x.device)[:, :, None, None]  # (b, t, 1, 1, d)
-        tokens = tokens + space + camera + time
+        tokens = tokens + codes + time
         if agents is not None and self.conditioner.agent_raster is not None:
             painted = self.conditioner.grid_agents(agents, (h // p, w // p), keep)
             tokens = tokens + rearrange(painted, "b t v h w d -> b t v (h w) d")
@@ -130,12 +131,13 @@ class LatentWorldModel(nn.Module):
             tokens = tokens + rearrange(flow, "b t v h w d -> b t v (h w) d")
         return rearrange(tokens, "b t v n d -> b t (v n) d")
 
-    def query_positions(self, cond: WorldConditions, grid: tuple[int, int], dtype: torch.dtype) -> torch.Tensor:
-        """(b, 1, v·gh·gw, d): each image token's grid code plus its camera's embedding, the codes
-        `WorldConditioner.position_keys` gives an agent at its box centre (agent_position_queries)."""
-        space = sincos_2d(*grid, self.dim, cond.intrinsics.device).to(dtype)  # (gh·gw, d)
-        camera = self.conditioner.camera_embedding(cond).to(dtype)  # (b, v, d)
-        return rearrange(space[None, None] + camera[:, :, None], "b v n d -> b 1 (v n) d")
+    def position_codes(self, cond: WorldConditions, grid: tuple[int, int]) -> torch.Tensor:
+        """(b, 1, v, gh·gw, d): each image token's grid sin-cos code plus its camera's embedding, what `embed` adds
+        to it, the cross-attention queries get with agent_position_queries, and `WorldConditioner.position_keys`
+        gives an agent at its box centre."""
+        camera = self.conditioner.camera_embedding(cond)  # (b, v, d)
+        space = sincos_2d(*grid, self.dim, cond.intrinsics.device).to(camera.dtype)  # (gh·gw, d)
+        return (space[None, None] + camera[:, :, None])[:, None]
 
     def forward(self, x: torch.Tensor, tau: torch.Tensor, cond: WorldConditions,
                 positions: torch.Tensor | None = None) -> torch.Tensor:
@@ -147,16 +149,17 @@ class LatentWorldModel(nn.Module):
         # agent tokens once per forward: both the grid painting and the cross-attention use them
         grid = (h // self.patch, w // self.patch)
         agents = self.conditioner.agent_features(cond, grid) if cond.active("agents") else None
-        tokens = self.embed(x, cond, keep, agents)
-        queries = self.query_positions(cond, grid, tokens.dtype) if self.agent_position_queries else None
+        codes = self.position_codes(cond, grid)
+        tokens = self.embed(x, cond, keep, agents, codes)
+        queries = rearrange(codes, "b 1 v n d -> b 1 (v n) d") if self.agent_position_queries else None
         if positions is not None:
             tokens = tokens[:, :, positions]
             queries = None if queries is None else queries[:, :, positions]
         c = self.conditioner.adaln(tau, cond, keep)
-        context, mask = self.conditioner.context(cond, b, t, keep, x.device, agents)
-        if self.agent_box_attention and agents is not None:
-            mask = self.conditioner.box_attention_mask(agents, grid, mask)
-            mask = mask if positions is None else mask[:, :, positions]
+        context, mask = self.conditioner.context(cond, b, t, keep, x.device, agents,
+                                                 grid if self.agent_box_attention else None)
+        if mask.ndim == 4 and positions is not None:  # one mask row per image token (agent_box_attention)
+            mask = mask[:, :, positions]
         for block in self.blocks:
             if self.checkpointing and self.training:
                 tokens = checkpoint(block, tokens, c, context, mask, queries, use_reentrant=False)
