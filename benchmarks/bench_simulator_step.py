@@ -20,6 +20,10 @@ for the shipped reference weights (learned time), and for a world model of the s
     python benchmarks/bench_simulator_step.py --steps 16 --repeats 3 --full-steps 0 --compiled
     python benchmarks/bench_simulator_step.py --steps 16 --repeats 5 --full-steps 0 --compiled --profile 4
     python benchmarks/bench_simulator_step.py --steps 16 --repeats 5 --full-steps 0 --compiled --tokens-per-call 4 8
+    python benchmarks/bench_simulator_step.py --steps 8 --skip 8 --repeats 5 --full-steps 0 --compiled --rope
+
+With --skip, the shipped (learned-time) model's row also times one re-prefill of the window alone: what each slide
+costs it.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ import numpy as np
 import torch
 import yaml
 
-from gaia_app.diffusion.ar_sampling import AutoregressiveSampler
+from gaia_app.diffusion.ar_sampling import AutoregressiveSampler, WindowStream
 from gaia_app.models.gaia1.world_model import WorldModel
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.pipelines.simulator import DrivingSimulator
@@ -66,13 +70,16 @@ def window_per_step(pipeline: Gaia1Pipeline) -> DrivingSimulator:
     return env
 
 
-def episode_rate(env: DrivingSimulator, steps: int, seed: int) -> float:
-    """Frames/s of `steps` steps after a reset (the reset's context encoding not counted)."""
+def episode_rate(env: DrivingSimulator, steps: int, seed: int, skip: int = 0) -> float:
+    """Frames/s of `steps` steps after a reset and `skip` untimed steps (the reset's context encoding not counted).
+    With skip ≥ T − context frames every timed step slides the window: the rate of a long episode."""
     rng = np.random.default_rng(seed)
     env.reset(seed=seed, options={"index": seed})
-    commands = [[rng.uniform(6, 14), rng.uniform(-0.03, 0.03)] for _ in range(steps)]
+    commands = [[rng.uniform(6, 14), rng.uniform(-0.03, 0.03)] for _ in range(skip + steps)]
+    for action in commands[:skip]:
+        env.step(action)
     start = time.perf_counter()
-    for action in commands:
+    for action in commands[skip:]:
         env.step(action)
     return steps / (time.perf_counter() - start)
 
@@ -105,12 +112,41 @@ def paths(pipeline: Gaia1Pipeline, full: bool, compiled: bool = False,
     return envs
 
 
-def profile_table(env: DrivingSimulator, steps: int, rows: int = 12) -> str:
-    """torch.profiler's operators by self CPU time over `steps` steps of a warm env: where a step's time goes."""
+def window_prefill_ms(env: DrivingSimulator, repeats: int) -> dict[str, Any]:
+    """Milliseconds of one re-prefill of the window, alone: what a slide costs a net with learned step embeddings
+    (GAIA-1 §2.1), whose every key changes with the window's start. Run on the open session of `env` after a
+    slide, whose window holds T steps: its first T − 1 in full and the last one's text, every guidance stream
+    stacked on the batch (the positions a slide re-feeds), into a fresh eager KV cache. Medians of `repeats`, after
+    one untimed run."""
+    session = env.episodes.session
+    tokens, t = session.tokens, session.tokens.shape[1] - 1
+
+    def prefill() -> float:
+        start = time.perf_counter()
+        with torch.no_grad():
+            WindowStream(session.net, True, session.capacity).feed(session.prefill(tokens, t))
+        return 1000 * (time.perf_counter() - start)
+
+    prefill()
+    runs = [prefill() for _ in range(repeats)]
+    x = session.prefill(tokens, t)
+    return {"ms": statistics.median(runs), "runs": runs, "positions": int(x.shape[1]), "batch": int(x.shape[0]),
+            "budget_ms_at_3x": 1000 / (3 * REAL_TIME_HZ)}
+
+
+def profile_table(env: DrivingSimulator, steps: int, rows: int = 12, skip: int = 0) -> str:
+    """torch.profiler's operators by self CPU time over `steps` steps of a warm env (after `skip` untimed ones):
+    where a step's time goes."""
     from torch.profiler import ProfilerActivity, profile
 
+    rng = np.random.default_rng(0)
+    env.reset(seed=0, options={"index": 0})
+    commands = [[rng.uniform(6, 14), rng.uniform(-0.03, 0.03)] for _ in range(skip + steps)]
+    for action in commands[:skip]:
+        env.step(action)
     with profile(activities=[ProfilerActivity.CPU]) as prof:
-        episode_rate(env, steps, seed=0)
+        for action in commands[skip:]:
+            env.step(action)
     return prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=rows)
 
 
@@ -119,6 +155,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=16)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--rope", action="store_true", help="also a rotary-time world model of the shipped layout")
+    parser.add_argument("--skip", type=int, default=0,
+                        help="untimed steps after each reset; ≥ T − 4 (8 for the shipped weights) times only steps "
+                             "that slide the window, as in a long episode")
     parser.add_argument("--full-steps", type=int, default=2, help="steps of the (slow) full-recompute path; 0: skip")
     parser.add_argument("--compiled", action="store_true", help="also the session with the compiled decode step")
     parser.add_argument("--tokens-per-call", type=int, nargs="*", default=[],
@@ -131,7 +170,7 @@ def main() -> None:
     shipped = Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=False)
     models = {"shipped (learned time)": shipped} | ({"rotary time (random weights)": rope_pipeline(shipped)}
                                                     if args.rope else {})
-    results: dict[str, Any] = {"threads": torch.get_num_threads(), "steps": args.steps}
+    results: dict[str, Any] = {"threads": torch.get_num_threads(), "steps": args.steps, "skip": args.skip}
     for label, pipeline in models.items():
         envs = paths(pipeline, args.full_steps > 0, args.compiled, tuple(args.tokens_per_call))
         runs: dict[str, list[float]] = {name: [] for name in envs}
@@ -140,7 +179,7 @@ def main() -> None:
         for repeat in range(args.repeats):  # alternated, so every path sees the same machine
             for name, env in envs.items():
                 steps = args.full_steps if name == "full recompute" else args.steps
-                runs[name].append(episode_rate(env, steps, seed=repeat))
+                runs[name].append(episode_rate(env, steps, seed=repeat, skip=args.skip))
         row = {name: {"frames_per_s": statistics.median(r), "real_time_ratio": statistics.median(r) / REAL_TIME_HZ,
                       "runs": r} for name, r in runs.items()}
         row["session_over_window_per_step"] = row["session"]["frames_per_s"] / row["window per step"]["frames_per_s"]
@@ -151,8 +190,13 @@ def main() -> None:
             name = f"session, compiled decode, {block} tokens per call"
             row[f"{block}_per_call_over_session"] = row[name]["frames_per_s"] / row["session"]["frames_per_s"]
         results[label] = row
+        if args.skip and not pipeline.world_model.rolling_cache:
+            row["window_prefill"] = prefill = window_prefill_ms(envs["session"], args.repeats)
+            print(f"{label}: one re-prefill of the window ({prefill['batch']} × {prefill['positions']} positions) "
+                  f"{prefill['ms']:.1f} ms; a whole step at 3× real time may take {prefill['budget_ms_at_3x']:.1f} ms")
         if args.profile:
-            print(profile_table(envs["session, compiled decode" if args.compiled else "session"], args.profile))
+            print(profile_table(envs["session, compiled decode" if args.compiled else "session"], args.profile,
+                                skip=args.skip))
         for name in envs:
             print(f"{label} {name}: {row[name]['frames_per_s']:.2f} frames/s "
                   f"({row[name]['real_time_ratio']:.2f}× real time)")
