@@ -82,6 +82,31 @@ def dtype_of(name: str | None) -> torch.dtype | None:
     return dtype
 
 
+def fill_missing_optimizer_state(optimizer: torch.optim.Optimizer) -> int:
+    """Give every trained parameter that has no optimizer state yet (it never had a gradient: a text encoder on
+    data without captions, a dropped condition) the state a zero gradient at learning rate 0 leaves, the way
+    torch.distributed.checkpoint initialises a fresh optimizer before loading into it. Nothing else changes: the
+    other parameters take no step, no weight moves, gradients and learning rates are restored. Returns how many
+    parameters got a state."""
+    params = [p for group in optimizer.param_groups for p in group["params"]]
+    missing = {id(p) for p in params if p.requires_grad and p not in optimizer.state}
+    if not missing:
+        return 0
+    grads, rates = [p.grad for p in params], [group["lr"] for group in optimizer.param_groups]
+    try:
+        for p in params:
+            p.grad = torch.zeros_like(p) if id(p) in missing else None
+        for group in optimizer.param_groups:
+            group["lr"] = torch.zeros_like(group["lr"]) if isinstance(group["lr"], torch.Tensor) else 0.0
+        optimizer.step()
+    finally:
+        for p, grad in zip(params, grads):
+            p.grad = grad
+        for group, rate in zip(optimizer.param_groups, rates):
+            group["lr"] = rate
+    return len(missing)
+
+
 class FSDP2Strategy(ModelParallelStrategy):
     """FSDP2 (`fully_shard`) as Lightning's `ModelParallelStrategy`, sharding a GaiaModule without model code.
 
@@ -133,6 +158,13 @@ class FSDP2Strategy(ModelParallelStrategy):
     def redirected(self, step: str, context: Any, *args: Any, **kwargs: Any) -> Any:
         with context:
             return self._forward_redirection(self.model, self.lightning_module, step, *args, **kwargs)
+
+    def optimizer_state(self, optimizer: Any) -> dict[str, Any]:
+        """The optimizer's state for the checkpoint, with an entry for every trained parameter (see
+        `fill_missing_optimizer_state`): resuming builds the live optimizer's state for all of them and loads
+        each entry it builds from the checkpoint, so one missing there stops the resume."""
+        fill_missing_optimizer_state(getattr(optimizer, "_optimizer", optimizer))
+        return super().optimizer_state(optimizer)
 
     def shard(self, module: nn.Module) -> None:
         """fully_shard each repeated block of `module.net` (innermost first), then `module` itself. Idempotent."""

@@ -127,5 +127,5 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     # weights_only: Lightning's own resume load must not unpickle code either
     trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
-    log.info("run dir: %s", run_dir)
+    log.info("trained to step %d; run dir: %s", trainer.global_step, run_dir)
     return {"metrics": metrics, "run_dir": run_dir, **objects}

@@ -2,7 +2,7 @@
 
 A checkpoint is either Lightning's single file or, from a sharded run (trainer=fsdp2 / fsdp with
 `save_distributed_checkpoint` / `state_dict_type: sharded`), a folder of per-rank `.distcp` shards plus Lightning's
-`meta.pt`; both load on one CPU process.
+`meta.pt`, or a DeepSpeed folder (trainer=deepspeed_zero2; `deepspeed_folders.py`); all load on one CPU process.
 
 Checkpoints travel between users, so loading one must never run code: every file is unpickled with
 `weights_only=True` (tensors and plain containers only), the shards' `.metadata` pickle by an unpickler that
@@ -49,8 +49,15 @@ def safe_torch_load(path: Path, map_location: str | torch.device = "cpu", mmap: 
 
 
 def read_checkpoint(ckpt_path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """The checkpoint dict (`state_dict`, `hyper_parameters`, ...) of a file or of a sharded checkpoint folder."""
+    """The checkpoint dict (`state_dict`, `hyper_parameters`, ...) of a file, of a sharded checkpoint folder or of
+    a DeepSpeed ZeRO-1/2 folder."""
+    from gaia_app.weights import deepspeed_folders  # it imports this module
+
     path = Path(ckpt_path)
+    if deepspeed_folders.is_deepspeed_folder(path):
+        checkpoint = deepspeed_folders.read_deepspeed_checkpoint(path)
+        checkpoint["state_dict"] = {name: value.to(map_location) for name, value in checkpoint["state_dict"].items()}
+        return checkpoint
     if path.is_dir():
         return read_sharded_checkpoint(path, map_location)
     if not path.is_file():
@@ -60,9 +67,14 @@ def read_checkpoint(ckpt_path: str | Path, map_location: str | torch.device = "c
 
 def check_checkpoint_file(ckpt_path: str | Path) -> None:
     """Before Lightning resumes from `ckpt_path`: a file that loads safely (memory-mapped, nothing copied); a sharded
-    folder whose index is safe. Raises the errors of `read_checkpoint`."""
+    folder whose index is safe; a DeepSpeed folder whose files load weights-only. Raises the errors of
+    `read_checkpoint`."""
+    from gaia_app.weights import deepspeed_folders  # it imports this module
+
     path = Path(ckpt_path)
-    if path.is_dir():
+    if deepspeed_folders.is_deepspeed_folder(path):
+        deepspeed_folders.check_deepspeed_folder(path)
+    elif path.is_dir():
         check_dcp_metadata(path)
         checked_dict(safe_torch_load(path / SHARDED_META), path / SHARDED_META)
     else:

@@ -1,0 +1,95 @@
+"""DeepSpeed checkpoint folders (trainer=deepspeed_zero2 / deepspeed_zero3_offload), checked and read without
+running code.
+
+Lightning's DeepSpeedStrategy saves `checkpoints/last.ckpt/` as DeepSpeed lays it out: a `latest` file naming a tag
+folder, `<tag>/mp_rank_00_model_states.pt` (the module's weights, plus Lightning's own entries: hyper-parameters,
+loops, callbacks) and one `*_optim_states.pt` per rank. The optimizer files pickle three small DeepSpeed classes
+(its loss scaler, the ZeRO stage enum and a (start, numel) fragment address); DeepSpeed loads them with
+`weights_only=False`. Here every file is unpickled with `weights_only=True` and only those classes allowed, so a
+folder that holds anything else is refused before Lightning hands it to DeepSpeed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from gaia_app.weights.checkpoints import checked_dict, safe_torch_load
+
+LATEST = "latest"  # DeepSpeed's pointer to the newest tag folder
+MODEL_STATES = "mp_rank_00_model_states.pt"
+WRAPPER_PREFIX = "_forward_module."  # Lightning's wrapper around the LightningModule inside the engine
+# DeepSpeed's own entries of the model-states file; the rest is Lightning's checkpoint dict
+ENGINE_KEYS = {"module", "buffer_names", "optimizer", "param_shapes", "frozen_param_shapes", "shared_params",
+               "frozen_param_fragments", "lr_scheduler", "data_sampler", "random_ltd", "sparse_tensor_module_names",
+               "skipped_steps", "global_steps", "global_samples", "dp_world_size", "mp_world_size",
+               "checkpoint_parallel_dimensions", "ds_config", "ds_version"}
+
+
+def is_deepspeed_folder(folder: Path) -> bool:
+    return folder.is_dir() and (folder / LATEST).is_file()
+
+
+def deepspeed_data_classes(folder: Path) -> list[type]:
+    """The DeepSpeed classes its optimizer files may hold (nothing callable beyond building them)."""
+    try:
+        from deepspeed.runtime.fp16.loss_scaler import DynamicLossScaler, LossScaler
+        from deepspeed.runtime.zero.config import ZeroStageEnum
+        from deepspeed.utils.tensor_fragment import fragment_address
+    except ImportError as error:
+        raise ValueError(f"checkpoint folder '{folder}' is a DeepSpeed checkpoint; reading it needs deepspeed "
+                         f"(pip install -e '.[deepspeed]'): {error}") from None
+    return [LossScaler, DynamicLossScaler, ZeroStageEnum, fragment_address]
+
+
+def tag_folder(folder: Path) -> Path:
+    """The folder `latest` names, inside `folder` and holding the model states; errors name the file."""
+    tag = (folder / LATEST).read_text().strip()
+    if not tag or any(part in ("", ".", "..") for part in tag.split("/")) or "/" in tag or "\\" in tag:
+        raise ValueError(f"'{folder / LATEST}' names the tag {tag!r}: expected one folder name inside '{folder}'")
+    tagged = folder / tag
+    if not (tagged / MODEL_STATES).is_file():
+        raise FileNotFoundError(f"DeepSpeed checkpoint folder '{folder}': '{tagged}' has no {MODEL_STATES}")
+    return tagged
+
+
+def checkpoint_files(folder: Path) -> list[Path]:
+    """The tag folder's `.pt` files; one that resolves outside the checkpoint folder (a link) is refused."""
+    root = folder.resolve()
+    files = sorted(tag_folder(folder).glob("*.pt"))
+    for file in files:
+        if not file.resolve().is_relative_to(root):
+            raise ValueError(f"DeepSpeed checkpoint file '{file}' points outside its folder '{folder}'")
+    return files
+
+
+def load_deepspeed_file(path: Path, folder: Path) -> dict[str, Any]:
+    with torch.serialization.safe_globals(deepspeed_data_classes(folder)):
+        return checked_dict(safe_torch_load(path), path)
+
+
+def check_deepspeed_folder(folder: Path) -> None:
+    """Before Lightning resumes from a DeepSpeed folder: every file loads weights-only (DeepSpeed's three data
+    classes allowed) and its hyper-parameters are plain data."""
+    for file in checkpoint_files(folder):
+        load_deepspeed_file(file, folder)
+
+
+def read_deepspeed_checkpoint(folder: Path) -> dict[str, Any]:
+    """Lightning's checkpoint dict of a ZeRO-1/2 folder, `state_dict` from the module's weights (as trained: bf16
+    under bf16-mixed; the fp32 master copies stay in the optimizer files). ZeRO-3 partitions the weights themselves
+    across ranks: its folder is refused, naming Lightning's converter."""
+    checkpoint_files(folder)
+    states = load_deepspeed_file(tag_folder(folder) / MODEL_STATES, folder)
+    stage = int((states.get("ds_config") or {}).get("zero_optimization", {}).get("stage", 0))
+    if stage >= 3:
+        raise ValueError(f"DeepSpeed checkpoint folder '{folder}' is ZeRO stage {stage}, whose weights are "
+                         "partitioned across the optimizer files: consolidate it first with lightning.pytorch."
+                         "utilities.deepspeed.convert_zero_checkpoint_to_fp32_state_dict(folder, 'model.ckpt')")
+    module = states.get("module")
+    if not isinstance(module, dict) or not module:
+        raise ValueError(f"DeepSpeed checkpoint '{folder}': {MODEL_STATES} holds no module weights")
+    state_dict = {key.removeprefix(WRAPPER_PREFIX): value for key, value in module.items()}
+    return {key: value for key, value in states.items() if key not in ENGINE_KEYS} | {"state_dict": state_dict}
