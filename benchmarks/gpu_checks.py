@@ -13,6 +13,11 @@ Checks, in this order, each with its own time budget (seconds; a check past it i
   futures_16        aggregate tokens/s of 16 futures in one batch (the ≈300M GQA trunk), eager vs compiled
   training_mfu      the ≈350M world model's training MFU: bf16 autocast, fused AdamW, SDPA, torch.compile of the blocks
                     (bench_gpu_world_model.py's model FLOPs), against the card's dense bf16 peak
+  gaia2_rollout     GAIA-2: frames/s of a 3-camera rollout at the report's latent layout (64 × 14 × 30 per camera)
+                    with a small random net (256 × 8), at 50, 20 and 10 Euler steps (gpu_gaia2_rollout.py)
+  strategies        train.py with trainer=fsdp, fsdp2 and deepspeed_zero2 on one GPU: 20 steps of the GAIA-1 world
+                    model, then a resume from its checkpoint to step 30 (gpu_strategies.py; the dry run: fsdp2 on
+                    one CPU process, 4 + 2 steps). Needs hydra-core, omegaconf and, for DeepSpeed, deepspeed there
 After every check (and every row of one) DIR/gpu_checks.json and DIR/gpu_checks.md are rewritten, so a run cut short
 still returns what it measured. They record the card's name, the torch and CUDA versions and the date. Without CUDA
 (and without --dry-run) the script refuses in one line, within its first seconds.
@@ -36,6 +41,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_gpu_world_model as base  # noqa: E402  (its sizes, layouts, train step and model FLOPs)
+import gpu_gaia2_rollout  # noqa: E402  (GAIA-2: a 3-camera rollout at the report's latent layout)
+import gpu_strategies  # noqa: E402  (train.py with trainer=fsdp / fsdp2 / deepspeed_zero2, then a resume)
 
 from gaia_app.diffusion.ar_sampling import AutoregressiveSampler, TokenPicker  # noqa: E402
 from gaia_app.models.gaia1.world_model import WorldModel  # noqa: E402
@@ -43,7 +50,8 @@ from gaia_app.models.gaia1.world_model import WorldModel  # noqa: E402
 BANDWIDTH = (("H200", 4.8e12), ("H100 80GB HBM3", 3.35e12), ("H100 SXM", 3.35e12))  # name contains → bytes/s
 PEAK_BF16_TFLOPS = (("H200", 989.0), ("H100 80GB HBM3", 989.0), ("H100 SXM", 989.0), ("H100", 756.0), ("A100", 312.0))
 # seconds per check; the whole run stays under --budget-s
-BUDGETS = {"bandwidth": 20, "generation_100M": 110, "generation_300M": 130, "futures_16": 100, "training_mfu": 110}
+BUDGETS = {"bandwidth": 10, "generation_100M": 85, "generation_300M": 90, "futures_16": 65, "training_mfu": 95,
+           "gaia2_rollout": 35, "strategies": 100}
 
 
 class CheckTimeout(Exception):
@@ -247,11 +255,21 @@ def training_check(args: argparse.Namespace, device: torch.device, peak_tflops: 
     return check
 
 
+def strategies_check(args: argparse.Namespace) -> Check:
+    def check(save: Callable[[dict], None]) -> dict[str, Any]:
+        budget = max(signal.getitimer(signal.ITIMER_REAL)[0] - 3.0, 1.0)  # end the processes before the alarm
+        strategies = ["fsdp2"] if args.dry_run else list(gpu_strategies.STRATEGIES)
+        steps, more = (4, 2) if args.dry_run else (20, 10)
+        return gpu_strategies.run_all(Path(args.out) / "strategies", strategies, steps, more, budget, args.dry_run,
+                                      save)
+    return check
+
+
 def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", required=True, help="folder for gpu_checks.json and gpu_checks.md")
     parser.add_argument("--dry-run", action="store_true", help="tiny sizes on the CPU (checks the script, not a GPU)")
-    parser.add_argument("--budget-s", type=float, default=460.0, help="the whole run's wall-clock budget")
+    parser.add_argument("--budget-s", type=float, default=480.0, help="the whole run's wall-clock budget")
     parser.add_argument("--checks", default=",".join(BUDGETS), help="comma-separated subset, in this order")
     parser.add_argument("--context", type=int, default=4, help="generation: context frames")
     parser.add_argument("--eager-frames", type=int, default=2, help="generation: timed frames of the eager row")
@@ -289,6 +307,8 @@ def main() -> None:
         "generation_300M": generation_check("300M_gqa", 1, args, device, meta),
         "futures_16": generation_check("300M_gqa", 16, args, device, meta),
         "training_mfu": training_check(args, device, peak),
+        "gaia2_rollout": lambda save: gpu_gaia2_rollout.measure(args.dry_run, device, save=save),
+        "strategies": strategies_check(args),
     }
     for key in args.checks.split(","):
         left = args.budget_s - (time.perf_counter() - started)

@@ -32,13 +32,18 @@ def test_dry_run_writes_every_check(gpu_checks, monkeypatch, tmp_path) -> None:
     data = json.loads((tmp_path / "gpu_checks.json").read_text())
     assert data["meta"]["dry_run"] and data["meta"]["torch"] == torch.__version__ and data["meta"]["date"]
     checks = data["checks"]
-    assert {"bandwidth", "generation_100M", "generation_300M", "futures_16", "training_mfu"} <= set(checks)
+    expected = {"bandwidth", "generation_100M", "generation_300M", "futures_16", "training_mfu", "gaia2_rollout",
+                "strategies"}
+    assert expected <= set(checks)
     assert all(checks[name]["status"] == "ok" for name in checks), checks
     rows = checks["futures_16"]["rows"]
     assert checks["futures_16"]["batch"] == 16 and rows["eager"]["tokens_per_s"] > 0
     assert 0 < rows["compiled"]["roofline_fraction"] and checks["training_mfu"]["mfu"] > 0
     assert rows["compiled"]["tokens_per_call"] == 3 and rows["eager"]["tokens_per_call"] == 1
     assert "| generation_300M | compiled |" in (tmp_path / "gpu_checks.md").read_text()
+    assert checks["gaia2_rollout"]["rows"]["50 Euler steps"]["frames_per_s"] > 0
+    assert checks["strategies"]["rows"]["fsdp2"]["steps"] == "4 → 6"  # trained, then resumed from its checkpoint
+    assert "| strategies | fsdp2 |" in (tmp_path / "gpu_checks.md").read_text()
 
 
 def test_a_check_past_its_budget_is_marked_and_the_rest_still_written(gpu_checks, tmp_path) -> None:
