@@ -14,7 +14,7 @@ Checks, in this order, each with its own time budget (seconds; a check past it i
   training_mfu      the ≈350M world model's training MFU: bf16 autocast, fused AdamW, SDPA, torch.compile of the blocks
                     (bench_gpu_world_model.py's model FLOPs), against the card's dense bf16 peak
   gaia2_rollout     GAIA-2: frames/s of a 3-camera rollout at the report's latent layout (64 × 14 × 30 per camera)
-                    with a small random net (256 × 8), at 50, 20 and 10 Euler steps (gpu_gaia2_rollout.py)
+                    with a small random net (256 × 8), at 50, 20, 10 and 5 Euler steps (gpu_gaia2_rollout.py)
   strategies        train.py with trainer=fsdp, fsdp2 and deepspeed_zero2 on one GPU: 20 steps of the GAIA-1 world
                     model, then a resume from its checkpoint to step 30 (gpu_strategies.py; the dry run: fsdp2 on
                     one CPU process, 4 + 2 steps). Needs hydra-core, omegaconf and, for DeepSpeed, deepspeed there
