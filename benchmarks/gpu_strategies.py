@@ -46,8 +46,9 @@ def write_token_cache(root: Path, segments: int = 4, steps: int = 80, seed: int 
 
 def overrides(strategy: str, cache: Path, run_dir: Path, max_steps: int, every: int, dry_run: bool) -> list[str]:
     """train.py arguments: the world model on the cache, one device, checkpoints every `every` steps."""
-    device = ["trainer.accelerator=cpu", "trainer.precision=32-true", "trainer.strategy.param_dtype=null"] \
-        if dry_run else []
+    device = ["trainer.accelerator=cpu", "trainer.precision=32-true"] if dry_run else []
+    if dry_run and strategy == "fsdp2":
+        device.append("trainer.strategy.param_dtype=null")  # FSDP2's own bf16 policy: fp32 on the CPU
     width = ["model.net.dim=32", "model.net.depth=2", "model.net.heads=2", "model.net.kv_heads=1"] if dry_run else \
         ["model.net.dim=256", "model.net.depth=4", "model.net.heads=4", "model.net.kv_heads=2"]
     return ["experiment=gaia1/world_model_tiny", f"trainer={strategy}", "trainer.devices=1", *device,

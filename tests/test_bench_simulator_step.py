@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from gaia_app.pipelines.gaia1 import Gaia1Pipeline
 from gaia_app.weights.folders import shipped_folder
 from tests.conftest import load_benchmark
@@ -65,6 +67,9 @@ def test_the_window_prefill_is_timed_on_the_open_session() -> None:
     bench = load_benchmark("bench_simulator_step")
     env = bench.paths(Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=False), full=False)["session"]
     net = env.pipeline.world_model
+    bench.episode_rate(env, steps=1, seed=0)
+    with pytest.raises(ValueError, match="after a slide"):  # the window is not full yet
+        bench.window_prefill_ms(env, repeats=1)
     bench.episode_rate(env, steps=1, seed=0, skip=net.frames - 4)
     prefill = bench.window_prefill_ms(env, repeats=1)
     assert prefill["positions"] == (net.frames - 1) * net.step_len + net.m  # the last T − 1 steps and the text

@@ -29,10 +29,12 @@ def lay_out(folder: Path, stage: int = 2, optimizer_extra: object = None, tag: s
     entries beside the engine's, the module behind Lightning's wrapper) and one rank's optimizer states holding
     DeepSpeed's loss scaler, stage enum and fragment addresses."""
     (folder / tag).mkdir(parents=True)
+    model_states = "zero_pp_rank_0_mp_rank_00_model_states.pt" if stage == 3 else "mp_rank_00_model_states.pt"
     (folder / "latest").write_text(tag)
     torch.save({"module": {"_forward_module.net.weight": torch.ones(3)}, "ds_config": {"zero_optimization":
                 {"stage": stage}}, "ds_version": "0.19", "global_step": 20, "hyper_parameters": HYPER,
-                "loops": {"fit_loop": {}}}, folder / tag / "mp_rank_00_model_states.pt")
+                "loops": {"fit_loop": {}}},
+               folder / tag / model_states)
     optimizer = {"loss_scaler": LossScaler(1.0), "zero_stage": ZeroStageEnum(stage),
                  "param_slice_mappings": [{"net.weight": fragment_address(numel=3, start=0)}], "extra": optimizer_extra}
     torch.save({"optimizer_state_dict": optimizer, "ds_version": "0.19"},
@@ -64,9 +66,11 @@ def test_a_tag_outside_the_folder_is_refused(tmp_path: Path) -> None:
         check_checkpoint_file(folder)
 
 
-def test_a_zero3_folder_names_the_converter(tmp_path: Path) -> None:
+def test_a_zero3_folder_resumes_and_reading_it_names_the_converter(tmp_path: Path) -> None:
+    folder = lay_out(tmp_path / "last.ckpt", stage=3)  # ZeRO-3 names its model states per rank
+    check_checkpoint_file(folder)
     with pytest.raises(ValueError, match="convert_zero_checkpoint_to_fp32_state_dict"):
-        read_checkpoint(lay_out(tmp_path / "last.ckpt", stage=3))
+        read_checkpoint(folder)
 
 
 ENGINE_SCRIPT = """

@@ -35,7 +35,32 @@ def test_parameters_without_state_get_one_and_nothing_else_moves(fused: bool) ->
     assert torch.equal(used.weight.grad, grad) and unused.weight.grad is None
     assert optimizer.param_groups[0]["lr"] == 1e-2
     assert torch.count_nonzero(optimizer.state[unused.weight]["exp_avg"]) == 0
+    assert float(optimizer.state[unused.weight]["step"]) == 0  # as lazily created: the first update is a first one
     assert fill_missing_optimizer_state(optimizer) == 0
+
+
+def test_a_filled_state_gives_the_same_first_update_as_none() -> None:
+    """A parameter whose state was filled takes, at its first gradient, the step an untouched one takes."""
+    torch.manual_seed(0)
+    layers = [nn.Linear(3, 3) for _ in range(2)]
+    layers[1].load_state_dict(layers[0].state_dict())
+    optimizers = [torch.optim.AdamW(layer.parameters(), lr=1e-2, weight_decay=0.1) for layer in layers]
+    fill_missing_optimizer_state(optimizers[1])
+    x = torch.randn(4, 3)
+    for layer, optimizer in zip(layers, optimizers):
+        layer(x).sum().backward()
+        optimizer.step()
+    assert all(torch.allclose(a, b) for a, b in zip(layers[0].parameters(), layers[1].parameters()))
+
+
+def test_filling_inside_inference_mode_leaves_trainable_state() -> None:
+    layer = nn.Linear(3, 3)
+    optimizer = torch.optim.AdamW(layer.parameters(), lr=1e-2)
+    with torch.inference_mode():
+        fill_missing_optimizer_state(optimizer)
+    assert not optimizer.state[layer.weight]["exp_avg"].is_inference()
+    layer(torch.randn(2, 3)).sum().backward()
+    optimizer.step()  # would raise on inference tensors
 
 
 def test_the_token_cache_has_the_shipped_layout(tmp_path: Path) -> None:

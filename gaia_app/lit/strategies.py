@@ -84,26 +84,37 @@ def dtype_of(name: str | None) -> torch.dtype | None:
 
 def fill_missing_optimizer_state(optimizer: torch.optim.Optimizer) -> int:
     """Give every trained parameter that has no optimizer state yet (it never had a gradient: a text encoder on
-    data without captions, a dropped condition) the state a zero gradient at learning rate 0 leaves, the way
-    torch.distributed.checkpoint initialises a fresh optimizer before loading into it. Nothing else changes: the
-    other parameters take no step, no weight moves, gradients and learning rates are restored. Returns how many
-    parameters got a state."""
+    data without captions, a dropped condition) the state the optimizer would create lazily at its first gradient,
+    so that a checkpoint holds an entry for each (torch.distributed.checkpoint initialises a fresh optimizer's state
+    for every parameter before loading into it). Built by one step with zero gradients at learning rate 0 on those
+    parameters alone, then their step counters reset to 0, so a later first update is the one an optimizer without
+    the state would make. No weight moves: the other parameters take no step (decoupled weight decay, as AdamW's,
+    acts only through the step; L2-in-the-gradient optimizers see a zero gradient), and gradients and learning rates
+    are restored. Runs outside inference mode (a checkpoint saved from a validation hook would otherwise create
+    inference tensors that a later update cannot modify). Returns how many parameters got a state."""
     params = [p for group in optimizer.param_groups for p in group["params"]]
-    missing = {id(p) for p in params if p.requires_grad and p not in optimizer.state}
+    missing = {id(p) for p in params if p.requires_grad and not optimizer.state.get(p)}
     if not missing:
         return 0
     grads, rates = [p.grad for p in params], [group["lr"] for group in optimizer.param_groups]
-    try:
+    with torch.inference_mode(False), torch.no_grad():
+        try:
+            for p in params:
+                p.grad = torch.zeros_like(p) if id(p) in missing else None
+            for group in optimizer.param_groups:
+                group["lr"] = torch.zeros_like(group["lr"]) if isinstance(group["lr"], torch.Tensor) else 0.0
+            optimizer.step()
+        finally:
+            for p, grad in zip(params, grads):
+                p.grad = grad
+            for group, rate in zip(optimizer.param_groups, rates):
+                group["lr"] = rate
         for p in params:
-            p.grad = torch.zeros_like(p) if id(p) in missing else None
-        for group in optimizer.param_groups:
-            group["lr"] = torch.zeros_like(group["lr"]) if isinstance(group["lr"], torch.Tensor) else 0.0
-        optimizer.step()
-    finally:
-        for p, grad in zip(params, grads):
-            p.grad = grad
-        for group, rate in zip(optimizer.param_groups, rates):
-            group["lr"] = rate
+            step = optimizer.state[p].get("step") if id(p) in missing else None
+            if isinstance(step, torch.Tensor):
+                step.zero_()
+            elif step is not None:
+                optimizer.state[p]["step"] = 0
     return len(missing)
 
 

@@ -11,6 +11,7 @@ folder that holds anything else is refused before Lightning hands it to DeepSpee
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -18,8 +19,11 @@ import torch
 
 from gaia_app.weights.checkpoints import checked_dict, safe_torch_load
 
+log = logging.getLogger(__name__)
+
 LATEST = "latest"  # DeepSpeed's pointer to the newest tag folder
 MODEL_STATES = "mp_rank_00_model_states.pt"
+ZERO3_MODEL_STATES = "zero_pp_rank_0_mp_rank_00_model_states.pt"  # ZeRO-3: rank 0's file
 WRAPPER_PREFIX = "_forward_module."  # Lightning's wrapper around the LightningModule inside the engine
 # DeepSpeed's own entries of the model-states file; the rest is Lightning's checkpoint dict
 ENGINE_KEYS = {"module", "buffer_names", "optimizer", "param_shapes", "frozen_param_shapes", "shared_params",
@@ -50,8 +54,9 @@ def tag_folder(folder: Path) -> Path:
     if not tag or any(part in ("", ".", "..") for part in tag.split("/")) or "/" in tag or "\\" in tag:
         raise ValueError(f"'{folder / LATEST}' names the tag {tag!r}: expected one folder name inside '{folder}'")
     tagged = folder / tag
-    if not (tagged / MODEL_STATES).is_file():
-        raise FileNotFoundError(f"DeepSpeed checkpoint folder '{folder}': '{tagged}' has no {MODEL_STATES}")
+    if not any((tagged / name).is_file() for name in (MODEL_STATES, ZERO3_MODEL_STATES)):
+        raise FileNotFoundError(f"DeepSpeed checkpoint folder '{folder}': '{tagged}' has no {MODEL_STATES} "
+                                f"(ZeRO-3: {ZERO3_MODEL_STATES})")
     return tagged
 
 
@@ -65,25 +70,27 @@ def checkpoint_files(folder: Path) -> list[Path]:
     return files
 
 
-def load_deepspeed_file(path: Path, folder: Path) -> dict[str, Any]:
+def load_deepspeed_file(path: Path, folder: Path, mmap: bool = False) -> dict[str, Any]:
     with torch.serialization.safe_globals(deepspeed_data_classes(folder)):
-        return checked_dict(safe_torch_load(path), path)
+        return checked_dict(safe_torch_load(path, mmap=mmap), path)
 
 
 def check_deepspeed_folder(folder: Path) -> None:
     """Before Lightning resumes from a DeepSpeed folder: every file loads weights-only (DeepSpeed's three data
-    classes allowed) and its hyper-parameters are plain data."""
+    classes allowed) and its hyper-parameters are plain data. Memory-mapped: every rank reads every rank's files."""
     for file in checkpoint_files(folder):
-        load_deepspeed_file(file, folder)
+        load_deepspeed_file(file, folder, mmap=True)
 
 
 def read_deepspeed_checkpoint(folder: Path) -> dict[str, Any]:
     """Lightning's checkpoint dict of a ZeRO-1/2 folder, `state_dict` from the module's weights (as trained: bf16
-    under bf16-mixed; the fp32 master copies stay in the optimizer files). ZeRO-3 partitions the weights themselves
-    across ranks: its folder is refused, naming Lightning's converter."""
+    under bf16-mixed, with a warning; the fp32 master copies stay in the optimizer files). ZeRO-3 partitions the
+    weights themselves across ranks: its folder is refused, naming Lightning's converter."""
     checkpoint_files(folder)
-    states = load_deepspeed_file(tag_folder(folder) / MODEL_STATES, folder)
-    stage = int((states.get("ds_config") or {}).get("zero_optimization", {}).get("stage", 0))
+    tagged = tag_folder(folder)
+    zero3_file = not (tagged / MODEL_STATES).is_file()
+    states = load_deepspeed_file(tagged / (ZERO3_MODEL_STATES if zero3_file else MODEL_STATES), folder)
+    stage = 3 if zero3_file else int((states.get("ds_config") or {}).get("zero_optimization", {}).get("stage", 0))
     if stage >= 3:
         raise ValueError(f"DeepSpeed checkpoint folder '{folder}' is ZeRO stage {stage}, whose weights are "
                          "partitioned across the optimizer files: consolidate it first with lightning.pytorch."
@@ -92,4 +99,9 @@ def read_deepspeed_checkpoint(folder: Path) -> dict[str, Any]:
     if not isinstance(module, dict) or not module:
         raise ValueError(f"DeepSpeed checkpoint '{folder}': {MODEL_STATES} holds no module weights")
     state_dict = {key.removeprefix(WRAPPER_PREFIX): value for key, value in module.items()}
+    low = sorted({str(v.dtype) for v in state_dict.values() if v.dtype in (torch.bfloat16, torch.float16)})
+    if low:
+        log.warning("DeepSpeed checkpoint '%s': its module weights are %s as trained (the fp32 master copies stay in "
+                    "the optimizer files; lightning.pytorch.utilities.deepspeed.convert_zero_checkpoint_to_fp32_"
+                    "state_dict writes them out)", folder, "/".join(low))
     return {key: value for key, value in states.items() if key not in ENGINE_KEYS} | {"state_dict": state_dict}
