@@ -9,7 +9,8 @@ Everything after `--` is a Hydra override of generate.yaml (model=gaia2 data=syn
 and the continuation are those of mode=evaluate's fidelity table (gaia_app/protocols/gaia2_evaluate.py): the
 context latent steps given clean, the rest generated in one chunk under the scene's own conditions, every camera
 scored from the last context frame on. Each step count reuses each scene's noise seed. FVMD's motion features are
-computed once per clip; the intervals resample scenes (their cameras together), the same draws for every row. Rows:
+computed once per clip (and saved, features.npz); the intervals are the jackknife's over scenes (their cameras
+together), paired across rows. Rows:
 each step count, the tokenized real continuation (ceiling) and the last context frame held (floor).
 """
 
@@ -46,23 +47,24 @@ def fvmd_of(real: np.ndarray, generated: np.ndarray) -> float:
     return frechet_distance(*stats)
 
 
-def bootstrap(features: dict[str, np.ndarray], real: np.ndarray, cameras: int, reference: str, draws: int,
-              seed: int = 0) -> dict[str, dict[str, float]]:
-    """FVMD of every row and its ratio to `reference`, with 95 % intervals over scenes resampled (all `cameras`
-    clips of a scene together; the same draws for every row). Arrays are (scenes · cameras, FEATURE_DIM)."""
+def intervals(features: dict[str, np.ndarray], real: np.ndarray, cameras: int, reference: str
+              ) -> dict[str, dict[str, float]]:
+    """FVMD of every row and its ratio to `reference`, each with a 95 % interval from the jackknife over scenes:
+    leave one scene (its `cameras` clips) out, for every row at once, and take ±1.96 jackknife standard errors.
+    A jackknife never repeats a clip, and a repeated clip would bias a Fréchet distance (as a bootstrap's resamples
+    do). Arrays are (scenes · cameras, FEATURE_DIM)."""
     scenes = real.shape[0] // cameras
-    rng = np.random.default_rng(seed)
-    picks = [np.concatenate([np.arange(s * cameras, (s + 1) * cameras) for s in rng.integers(0, scenes, scenes)])
-             for _ in range(draws)]
+    keep = [np.setdiff1d(np.arange(real.shape[0]), np.arange(s * cameras, (s + 1) * cameras)) for s in range(scenes)]
+    reference_values = np.array([fvmd_of(real[k], features[reference][k]) for k in keep])
     out = {}
     for name, rows in features.items():
-        values = [fvmd_of(real[p], rows[p]) for p in picks]
-        ratios = [v / fvmd_of(real[p], features[reference][p]) for v, p in zip(values, picks)]
+        values = np.array([fvmd_of(real[k], rows[k]) for k in keep])
         value, ratio = fvmd_of(real, rows), fvmd_of(real, rows) / fvmd_of(real, features[reference])
-        out[name] = {"fvmd": value, "fvmd_low": float(np.percentile(values, 2.5)),
-                     "fvmd_high": float(np.percentile(values, 97.5)), "ratio": ratio,
-                     "ratio_low": float(np.percentile(ratios, 2.5)), "ratio_high": float(np.percentile(ratios, 97.5))}
-    return out
+        spread = {key: 1.96 * np.sqrt((scenes - 1) / scenes * np.sum((x - x.mean()) ** 2))
+                  for key, x in (("fvmd", values), ("ratio", values / reference_values))}
+        out[name] = {"fvmd": value, "fvmd_low": value - spread["fvmd"], "fvmd_high": value + spread["fvmd"],
+                     "ratio": ratio, "ratio_low": ratio - spread["ratio"], "ratio_high": ratio + spread["ratio"]}
+    return {name: {k: float(v) for k, v in row.items()} for name, row in out.items()}
 
 
 def fewest_within(rows: dict[str, dict[str, float]], steps: list[int], tolerance: float = 0.10) -> dict[str, Any]:
@@ -73,7 +75,8 @@ def fewest_within(rows: dict[str, dict[str, float]], steps: list[int], tolerance
     return {"tolerance": tolerance, "point": min(point) if point else None, "interval": min(strict) if strict else None}
 
 
-def euler_steps(weights: str, steps: list[int], overrides: list[str], draws: int) -> dict[str, Any]:
+def euler_steps(weights: str, steps: list[int], overrides: list[str], features_out: Path | None = None
+                ) -> dict[str, Any]:
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("generate", ["model=gaia2", "data=synthetic_rig", "mode=evaluate", f"weights={weights}",
@@ -108,7 +111,10 @@ def euler_steps(weights: str, steps: list[int], overrides: list[str], draws: int
     pipeline.world.sampler = solver
     cameras = real_features[0].shape[0]
     stacked = {name: np.concatenate(rows) for name, rows in features.items()}
-    rows = bootstrap(stacked, np.concatenate(real_features), cameras, f"{max(steps)} steps", draws)
+    real_stacked = np.concatenate(real_features)
+    if features_out is not None:  # the per-clip motion features, so the statistics can be redone without the model
+        np.savez(features_out, real=real_stacked, **{name: rows for name, rows in stacked.items()})
+    rows = intervals(stacked, real_stacked, cameras, f"{max(steps)} steps")
     for name in names:
         rows[name]["seconds_per_rollout"] = seconds[name] / len(samples)
     return {"weights": weights, "overrides": overrides, "scenes": len(samples), "cameras": cameras,
@@ -118,7 +124,7 @@ def euler_steps(weights: str, steps: list[int], overrides: list[str], draws: int
 
 def markdown(result: dict[str, Any]) -> str:
     lines = [f"{result['scenes']} scenes × {result['cameras']} cameras, {result['generated_frames']} generated frames "
-             "each; FVMD ↓ against the real continuations, 95 % intervals over scenes", "",
+             "each; FVMD ↓ against the real continuations, 95 % jackknife intervals over scenes", "",
              "| rollouts | FVMD | ÷ the most steps | s / rollout (this machine) |", "|---|---:|---:|---:|"]
     for name, row in result["rows"].items():
         timing = f"{row['seconds_per_rollout']:.2f}" if "seconds_per_rollout" in row else ""
@@ -134,16 +140,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--weights", default="gaia2")
     parser.add_argument("--steps", type=int, nargs="+", default=[50, 20, 10, 5])
-    parser.add_argument("--bootstrap", type=int, default=1000, help="resamples of the scenes for the intervals")
     parser.add_argument("--out", default="outputs/gaia2_euler_steps")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of generate.yaml, after --")
     args = parser.parse_args()
     if min(args.steps) < 2:
         raise SystemExit(f"--steps {args.steps}: the linear-quadratic schedule needs at least 2 steps")
     torch.set_grad_enabled(False)
-    result = euler_steps(args.weights, args.steps, args.overrides, args.bootstrap)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    result = euler_steps(args.weights, args.steps, args.overrides, out / "features.npz")
     atomic_write_text(out / "gaia2_euler_steps.json", json.dumps(result, indent=2))
     table = markdown(result)
     atomic_write_text(out / "gaia2_euler_steps.md", table)
