@@ -70,16 +70,22 @@ def window_per_step(pipeline: Gaia1Pipeline) -> DrivingSimulator:
     return env
 
 
-def episode_rate(env: DrivingSimulator, steps: int, seed: int, skip: int = 0) -> float:
-    """Frames/s of `steps` steps after a reset and `skip` untimed steps (the reset's context encoding not counted).
-    With skip ≥ T − context frames every timed step slides the window: the rate of a long episode."""
+def reset_and_skip(env: DrivingSimulator, steps: int, seed: int, skip: int) -> list[list[float]]:
+    """Reset `env` with `seed`, take `skip` steps of random commands; → the commands of the next `steps` steps."""
     rng = np.random.default_rng(seed)
     env.reset(seed=seed, options={"index": seed})
     commands = [[rng.uniform(6, 14), rng.uniform(-0.03, 0.03)] for _ in range(skip + steps)]
     for action in commands[:skip]:
         env.step(action)
+    return commands[skip:]
+
+
+def episode_rate(env: DrivingSimulator, steps: int, seed: int, skip: int = 0) -> float:
+    """Frames/s of `steps` steps after a reset and `skip` untimed steps (the reset's context encoding not counted).
+    With skip ≥ T − context frames every timed step slides the window: the rate of a long episode."""
+    commands = reset_and_skip(env, steps, seed, skip)
     start = time.perf_counter()
-    for action in commands[skip:]:
+    for action in commands:
         env.step(action)
     return steps / (time.perf_counter() - start)
 
@@ -141,13 +147,9 @@ def profile_table(env: DrivingSimulator, steps: int, rows: int = 12, skip: int =
     where a step's time goes."""
     from torch.profiler import ProfilerActivity, profile
 
-    rng = np.random.default_rng(0)
-    env.reset(seed=0, options={"index": 0})
-    commands = [[rng.uniform(6, 14), rng.uniform(-0.03, 0.03)] for _ in range(skip + steps)]
-    for action in commands[:skip]:
-        env.step(action)
+    commands = reset_and_skip(env, steps, seed=0, skip=skip)
     with profile(activities=[ProfilerActivity.CPU]) as prof:
-        for action in commands[skip:]:
+        for action in commands:
             env.step(action)
     return prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=rows)
 

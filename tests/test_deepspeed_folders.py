@@ -26,12 +26,12 @@ HYPER = {"model_cfg": {"_target_": "gaia_app.lit.world_model.WorldModelModule"}}
 
 def lay_out(folder: Path, stage: int = 2, optimizer_extra: object = None, tag: str = "checkpoint") -> Path:
     """A folder laid out as Lightning's DeepSpeedStrategy saves one: `latest`, the model states (Lightning's
-    entries beside the engine's, the module behind Lightning's wrapper) and one rank's optimizer states holding
+    entries beside the engine's) and one rank's optimizer states holding
     DeepSpeed's loss scaler, stage enum and fragment addresses."""
     (folder / tag).mkdir(parents=True)
     model_states = "zero_pp_rank_0_mp_rank_00_model_states.pt" if stage == 3 else "mp_rank_00_model_states.pt"
     (folder / "latest").write_text(tag)
-    torch.save({"module": {"_forward_module.net.weight": torch.ones(3)}, "ds_config": {"zero_optimization":
+    torch.save({"module": {"net.weight": torch.ones(3)}, "ds_config": {"zero_optimization":
                 {"stage": stage}}, "ds_version": "0.19", "global_step": 20, "hyper_parameters": HYPER,
                 "loops": {"fit_loop": {}}},
                folder / tag / model_states)
@@ -46,7 +46,7 @@ def test_a_deepspeed_folder_passes_the_resume_check_and_reads_its_weights(tmp_pa
     folder = lay_out(tmp_path / "checkpoints" / "last.ckpt")
     assert resume_path("last", tmp_path) == str(folder)  # checked, not refused for lacking a DCP index
     checkpoint = read_checkpoint(folder)
-    assert list(checkpoint["state_dict"]) == ["net.weight"]  # Lightning's wrapper prefix removed
+    assert list(checkpoint["state_dict"]) == ["net.weight"]
     assert checkpoint["global_step"] == 20 and checkpoint["hyper_parameters"] == HYPER
     assert "ds_config" not in checkpoint and "module" not in checkpoint
 

@@ -2,11 +2,12 @@
 running code.
 
 Lightning's DeepSpeedStrategy saves `checkpoints/last.ckpt/` as DeepSpeed lays it out: a `latest` file naming a tag
-folder, `<tag>/mp_rank_00_model_states.pt` (the module's weights, plus Lightning's own entries: hyper-parameters,
-loops, callbacks) and one `*_optim_states.pt` per rank. The optimizer files pickle three small DeepSpeed classes
-(its loss scaler, the ZeRO stage enum and a (start, numel) fragment address); DeepSpeed loads them with
-`weights_only=False`. Here every file is unpickled with `weights_only=True` and only those classes allowed, so a
-folder that holds anything else is refused before Lightning hands it to DeepSpeed.
+folder, `<tag>/mp_rank_00_model_states.pt` (ZeRO-3: `zero_pp_rank_<r>_mp_rank_00_model_states.pt` per rank; the
+module's weights, plus Lightning's own entries: hyper-parameters, loops, callbacks) and one `*_optim_states.pt` per
+rank. The optimizer files pickle a few small DeepSpeed classes (its static or dynamic loss scaler, the ZeRO stage enum
+and a (start, numel) fragment address), and DeepSpeed's own loader unpickles them without torch's weights-only
+restriction. Here every file is first unpickled weights-only with only those classes allowed, so a folder that holds
+anything else is refused before Lightning hands it to DeepSpeed.
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ log = logging.getLogger(__name__)
 LATEST = "latest"  # DeepSpeed's pointer to the newest tag folder
 MODEL_STATES = "mp_rank_00_model_states.pt"
 ZERO3_MODEL_STATES = "zero_pp_rank_0_mp_rank_00_model_states.pt"  # ZeRO-3: rank 0's file
-WRAPPER_PREFIX = "_forward_module."  # Lightning's wrapper around the LightningModule inside the engine
 # DeepSpeed's own entries of the model-states file; the rest is Lightning's checkpoint dict
 ENGINE_KEYS = {"module", "buffer_names", "optimizer", "param_shapes", "frozen_param_shapes", "shared_params",
                "frozen_param_fragments", "lr_scheduler", "data_sampler", "random_ltd", "sparse_tensor_module_names",
@@ -51,7 +51,7 @@ def deepspeed_data_classes(folder: Path) -> list[type]:
 def tag_folder(folder: Path) -> Path:
     """The folder `latest` names, inside `folder` and holding the model states; errors name the file."""
     tag = (folder / LATEST).read_text().strip()
-    if not tag or any(part in ("", ".", "..") for part in tag.split("/")) or "/" in tag or "\\" in tag:
+    if tag in ("", ".", "..") or "/" in tag or "\\" in tag:
         raise ValueError(f"'{folder / LATEST}' names the tag {tag!r}: expected one folder name inside '{folder}'")
     tagged = folder / tag
     if not any((tagged / name).is_file() for name in (MODEL_STATES, ZERO3_MODEL_STATES)):
@@ -76,29 +76,31 @@ def load_deepspeed_file(path: Path, folder: Path, mmap: bool = False) -> dict[st
 
 
 def check_deepspeed_folder(folder: Path) -> None:
-    """Before Lightning resumes from a DeepSpeed folder: every file loads weights-only (DeepSpeed's three data
-    classes allowed) and its hyper-parameters are plain data. Memory-mapped: every rank reads every rank's files."""
+    """Before Lightning resumes from a DeepSpeed folder: every file loads weights-only (DeepSpeed's data classes
+    alone allowed) and its hyper-parameters are plain data. Memory-mapped: every rank reads every rank's files."""
     for file in checkpoint_files(folder):
         load_deepspeed_file(file, folder, mmap=True)
 
 
 def read_deepspeed_checkpoint(folder: Path) -> dict[str, Any]:
-    """Lightning's checkpoint dict of a ZeRO-1/2 folder, `state_dict` from the module's weights (as trained: bf16
-    under bf16-mixed, with a warning; the fp32 master copies stay in the optimizer files). ZeRO-3 partitions the
-    weights themselves across ranks: its folder is refused, naming Lightning's converter."""
-    checkpoint_files(folder)
-    tagged = tag_folder(folder)
-    zero3_file = not (tagged / MODEL_STATES).is_file()
-    states = load_deepspeed_file(tagged / (ZERO3_MODEL_STATES if zero3_file else MODEL_STATES), folder)
-    stage = 3 if zero3_file else int((states.get("ds_config") or {}).get("zero_optimization", {}).get("stage", 0))
+    """Lightning's checkpoint dict of a ZeRO-1/2 folder, `state_dict` from the module's weights (the LightningModule
+    is DeepSpeed's module, so the names are Lightning's; as trained: bf16 under bf16-mixed, with a warning, the fp32
+    master copies staying in the optimizer files). ZeRO-3 partitions the weights themselves across ranks: its folder
+    is refused, naming Lightning's converter."""
+    names = {file.name: file for file in checkpoint_files(folder)}
+    if MODEL_STATES not in names:
+        raise ValueError(f"DeepSpeed checkpoint folder '{folder}' is ZeRO stage 3 ({ZERO3_MODEL_STATES}), whose "
+                         "weights are partitioned across ranks: consolidate it first with lightning.pytorch.utilities."
+                         "deepspeed.convert_zero_checkpoint_to_fp32_state_dict(folder, 'model.ckpt')")
+    states = load_deepspeed_file(names[MODEL_STATES], folder)
+    stage = int((states.get("ds_config") or {}).get("zero_optimization", {}).get("stage", 0))
     if stage >= 3:
         raise ValueError(f"DeepSpeed checkpoint folder '{folder}' is ZeRO stage {stage}, whose weights are "
-                         "partitioned across the optimizer files: consolidate it first with lightning.pytorch."
-                         "utilities.deepspeed.convert_zero_checkpoint_to_fp32_state_dict(folder, 'model.ckpt')")
-    module = states.get("module")
-    if not isinstance(module, dict) or not module:
+                         "partitioned across ranks: consolidate it first with lightning.pytorch.utilities."
+                         "deepspeed.convert_zero_checkpoint_to_fp32_state_dict(folder, 'model.ckpt')")
+    state_dict = states.get("module")
+    if not isinstance(state_dict, dict) or not state_dict:
         raise ValueError(f"DeepSpeed checkpoint '{folder}': {MODEL_STATES} holds no module weights")
-    state_dict = {key.removeprefix(WRAPPER_PREFIX): value for key, value in module.items()}
     low = sorted({str(v.dtype) for v in state_dict.values() if v.dtype in (torch.bfloat16, torch.float16)})
     if low:
         log.warning("DeepSpeed checkpoint '%s': its module weights are %s as trained (the fp32 master copies stay in "
