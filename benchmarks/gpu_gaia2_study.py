@@ -45,6 +45,10 @@ ARMS = {
     "paper_posqk": ("gaia2/road_users/world_model_s4_paper_gpu",
                     ("model.net.agent_position_keys=true", "model.net.agent_position_queries=true")),
     "paper_boxattn": ("gaia2/road_users/world_model_s4_paper_gpu", ("model.net.agent_box_attention=true",)),
+    # the agent-weighted training loss (λ = 9) on the report's unmasked and on the box-masked cross-attention
+    "paper_agentloss": ("gaia2/road_users/world_model_s4_paper_gpu", ("model.agent_loss_weight=9.0",)),
+    "paper_boxattn_agentloss": ("gaia2/road_users/world_model_s4_paper_gpu",
+                                ("model.net.agent_box_attention=true", "model.agent_loss_weight=9.0")),
 }
 # the study's clips (docs/paper_faithful.md): 960 of 32 frames on the 3-camera rig, half driven, 16 held out
 CLIPS = ["data=synthetic_rig", "data.source.num_clips=960", "data.source.clip_len=32", "data.source.driven_share=0.5",

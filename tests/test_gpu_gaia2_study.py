@@ -26,6 +26,8 @@ def test_each_arm_gets_its_experiment_budget_and_options(study, tmp_path: Path) 
     keyed = study.train_command("paper_posqk", 2000, latents, tmp_path / "run", 300, dry=False)
     assert {"model.net.agent_position_keys=true", "model.net.agent_position_queries=true",
             "trainer.val_check_interval=1000"} <= set(keyed)
+    weighted = study.train_command("paper_boxattn_agentloss", 250, latents, tmp_path / "run", 300, dry=False)
+    assert {"model.net.agent_box_attention=true", "model.agent_loss_weight=9.0"} <= set(weighted)
     shortcut = study.train_command("shortcut", 1200, latents, tmp_path / "run", 300, dry=False)
     assert "experiment=gaia2/road_users/world_model_s4_gpu" in shortcut
     assert not any(a.startswith("model.net.agent_position") for a in shortcut)

@@ -117,6 +117,30 @@ def test_context_steps_are_clean_and_excluded_from_the_loss(cache: Path) -> None
     torch.testing.assert_close(loss, (x[:, :, 2] - noise[:, :, 2]).pow(2).mean())
 
 
+def test_agent_loss_weight_weighs_the_cells_under_the_boxes(cache: Path) -> None:
+    """λ = 9: the cells under the car ahead (in the front camera only) weigh 10× the rest, the mean weight is 1, and
+    the weighted loss is the weighted mean of the same squared errors; λ = 0 leaves the report's plain mean."""
+    batch = next(iter(datamodule(cache).val_dataloader()))
+    assert make_module().position_weights(torch.zeros(3, 2, 3, 8, 4, 6), batch_conditions(batch)) is None
+    module = make_module(agent_loss_weight=9.0)
+    x = module.latents(batch, sample=False)
+    cond = batch_conditions(batch)
+    weights = module.position_weights(x, cond)
+    assert weights.shape == (3, 2, 3, 1, 4, 6)
+    torch.testing.assert_close(weights.mean(), torch.tensor(1.0))
+    front, side = weights[:, 0], weights[:, 1]
+    assert torch.allclose(side, side.amin()), "the car 12 m ahead is in no cell of the left camera"
+    assert front.amax() / front.amin() > 5 and float((front > front.amin()).float().mean()) < 0.5
+    noise = torch.randn_like(x)
+    taus = module.task_taus(3, 3, torch.full((3,), 0.5))
+    weighted = module.flow_loss(x, taus, cond, noise, weights)  # an untrained net predicts v = 0
+    torch.testing.assert_close(weighted, ((x - noise).pow(2) * weights).mean())
+    with pytest.raises(ValueError, match="agent boxes"):
+        module.position_weights(x, batch_conditions({k: v for k, v in batch.items() if not k.startswith("agents")}))
+    with pytest.raises(ValueError, match="agent_loss_weight"):
+        make_module(agent_loss_weight=-1.0)
+
+
 def test_context_draws_cover_scratch_and_prediction() -> None:
     module = make_module(context_prob=0.5)
     torch.manual_seed(0)
