@@ -1,6 +1,6 @@
-"""The road-users tokenizers that ship ahead of their world models (issue 49 item 2): gaia_app/weights/gaia1_road_users
-(the D = 4 GAIA-1 tokenizer, 448 tokens per frame) and gaia_app/weights/gaia2_road_users (the s = 4 GAIA-2 video
-tokenizer, 16 × 28 latent positions per latent step). Their MANIFESTs list every file, and the headline claim, that
+"""The road-users weights (issue 49): gaia_app/weights/gaia1_road_users (the D = 4 GAIA-1 tokenizer, 448 tokens per
+frame, ahead of its world model) and gaia_app/weights/gaia2_road_users (the s = 4 GAIA-2 video tokenizer, 16 × 28
+latent positions per latent step, and a latent world model on its latents with no raster). Their MANIFESTs list every file, and the headline claim, that
 they keep the road users the shipped tokenizers erase, holds on clips of a world used for nothing else."""
 
 from __future__ import annotations
@@ -50,11 +50,21 @@ def test_the_gaia1_road_users_tokenizer_keeps_the_agents_the_shipped_one_loses(t
 def test_the_gaia2_manifest_lists_every_file_and_the_latents_have_the_finer_grid() -> None:
     shipped = {p.name: str(p.stat().st_size) for p in GAIA2.iterdir() if p.suffix in (".safetensors", ".yaml")}
     assert listed_files(GAIA2) == shipped
-    assert set(shipped) == {"video_tokenizer.safetensors", "video_tokenizer.yaml"}
+    assert set(shipped) == {f"{part}.{ext}" for part in ("video_tokenizer", "latent_world_model")
+                            for ext in ("safetensors", "yaml")}
     assert sum(int(n) for n in shipped.values()) < 40e6  # the issue's GAIA-2 size budget
     net = load_nets(GAIA2, "video_tokenizer")[0]["net"]
     with torch.no_grad():
         assert net.encode(torch.zeros(1, 1, 4, 3, 64, 112)).mean.shape[-2:] == (16, 28)  # s = 4
+
+
+def test_the_gaia2_road_users_world_model_reads_agents_by_cross_attention_only() -> None:
+    """Its YAML paints nothing on the grid (no agent or ego-flow raster): the agents reach it through the box-masked
+    cross-attention, the ego action through AdaLN; it reads the tokenizer's 16 × 28 latents in 2 × 2 patches."""
+    nets, info = load_nets(GAIA2, "latent_world_model")
+    net = nets["net"]
+    assert net.conditioner.agent_raster is None and net.conditioner.action_raster is None
+    assert net.agent_box_attention and info["latent_scale"] == 0.375
 
 
 def test_the_gaia2_road_users_tokenizer_keeps_more_agents_than_the_shipped_one(tmp_path: Path) -> None:
