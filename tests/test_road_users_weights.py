@@ -1,7 +1,8 @@
 """The road-users weights (issue 49): gaia_app/weights/gaia1_road_users (the D = 4 GAIA-1 tokenizer, 448 tokens per
 frame, ahead of its world model) and gaia_app/weights/gaia2_road_users (the s = 4 GAIA-2 video tokenizer, 16 × 28
-latent positions per latent step, and a latent world model on its latents with no raster). Their MANIFESTs list every file, and the headline claim, that
-they keep the road users the shipped tokenizers erase, holds on clips of a world used for nothing else."""
+latent positions per latent step, and a latent world model on its latents with no raster). Their MANIFESTs list every
+file, and the headline claim, that they keep the road users the shipped tokenizers erase, holds on clips of a world
+used for nothing else."""
 
 from __future__ import annotations
 

@@ -1,0 +1,62 @@
+"""benchmarks/paper_faithful_figure.py (issue 50, item 1): the study's points, the two figures drawn from them, and
+the reading of where a line through an arm's budgets in log FLOPs reaches a target."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import load_benchmark
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_a_line_through_the_budgets_reaches_the_target_where_it_should() -> None:
+    bench = load_benchmark("paper_faithful_figure")
+    # 3.0 at 1e14, 2.0 at 1e15: one unit per decade, so 1.0 at 1e16, ten times the largest budget
+    assert bench.crossing([1e14, 1e15], [3.0, 2.0], 1.0, lower_is_better=True) == "≈ 1.0e+16 FLOPs (10× the largest)"
+    assert bench.crossing([1e14, 1e15], [3.0, 2.0], 2.5, lower_is_better=True) == "met"
+    assert bench.crossing([1e14, 1e15], [2.0, 3.0], 1.0, lower_is_better=True) == "moving away"
+    assert bench.crossing([1e14, 1e15], [0.2, 0.4], 0.8, lower_is_better=False) == "≈ 1.0e+17 FLOPs (100× the largest)"
+    assert bench.crossing([1e14], [3.0], 1.0, lower_is_better=True) == "one budget"
+
+
+def test_the_study_draws_both_figures_and_reads_every_arm_and_metric(tmp_path: Path) -> None:
+    bench = load_benchmark("paper_faithful_figure")
+    rows = bench.main(["--out", str(tmp_path), "--json", str(tmp_path / "crossings.json")])
+    for name in ("paper_faithful_gaia1.png", "paper_faithful_gaia2.png"):
+        assert (tmp_path / name).stat().st_size > 20_000, name
+    metrics = {(r["family"], r["arm"], r["metric"]) for r in rows}
+    for arm in ("paper", "shortcut"):
+        assert {("GAIA-1", arm, m) for m in ("speed", "curvature", "night prompted", "snow unprompted")} <= metrics
+        assert {("GAIA-2", arm, m) for m in ("speed", "curvature", "agent ratio")} <= metrics
+    by_key = {(r["family"], r["arm"], r["metric"]): r["crossing"] for r in rows}
+    # the study's readings (docs/paper_faithful.md): GAIA-1's paper arm meets curvature at the GPU budget, not speed
+    assert by_key[("GAIA-1", "paper", "curvature")] == "met"
+    assert by_key[("GAIA-1", "paper", "speed")].startswith("≈")
+    assert by_key[("GAIA-2", "paper", "agent ratio")] == "one budget"
+    assert json.loads((tmp_path / "crossings.json").read_text()) == rows
+
+
+def test_every_point_is_the_one_its_table_gives() -> None:
+    """The JSON and docs/paper_faithful.md must not drift apart: each contrast error of a point is in the doc."""
+    bench = load_benchmark("paper_faithful_figure")
+    doc = (ROOT / "docs" / "paper_faithful.md").read_text()
+    study = bench.load_study()
+    for family in ("gaia1", "gaia2"):
+        for point in study[family]["points"]:
+            for metric, digits in (("speed", 3), ("curvature", 4)):
+                mean, half = point[metric]
+                assert f"{mean:.{digits}f} ± {half:.{digits}f}" in doc, (family, point["arm"], point["budget"], metric)
+
+
+def test_a_point_without_a_field_is_refused_by_name(tmp_path: Path) -> None:
+    bench = load_benchmark("paper_faithful_figure")
+    study = json.loads(bench.STUDY.read_text())
+    del study["gaia2"]["points"][1]["agent_iou"]
+    path = tmp_path / "study.json"
+    path.write_text(json.dumps(study))
+    with pytest.raises(ValueError, match=r"gaia2\.points\[1\] lacks \['agent_iou'\]"):
+        bench.load_study(path)
