@@ -6,9 +6,13 @@ repeated blocks to wrap, shard and checkpoint. Every net names them in its `bloc
 strategy config says `auto_wrap_policy: blocks` and `build_strategy` puts the model's block classes there.
 
     trainer=ddp             DDPStrategy (gloo on CPU, NCCL on GPU)
-    trainer=fsdp            FSDPStrategy: wrap + activation checkpointing of the blocks, sharded checkpoints
+    trainer=fsdp            StagedFSDPStrategy: wrap + activation checkpointing of the blocks, sharded checkpoints
     trainer=fsdp2           FSDP2Strategy below: fully_shard per block, then the module (runs on CPU/gloo too)
-    trainer=deepspeed_zero2 / deepspeed_zero3_offload   DeepSpeedStrategy (CUDA only in Lightning)
+    trainer=deepspeed_zero2 / deepspeed_zero3_offload   StagedDeepSpeedStrategy (CUDA only in Lightning)
+
+The three sharding strategies write a checkpoint as a folder, every rank its part, over the previous one in place: a
+crash in the middle of a save would leave a folder of mixed steps that no resume can read. Here they write into
+`<name>.partial` and swap it in when every rank is done (`StagedSave`, gaia_app/lit/staged_checkpoints.py).
 """
 
 from __future__ import annotations
@@ -17,9 +21,11 @@ from typing import Any
 
 import torch
 from hydra.utils import instantiate
-from lightning.pytorch.strategies import ModelParallelStrategy, Strategy
+from lightning.pytorch.strategies import DeepSpeedStrategy, FSDPStrategy, ModelParallelStrategy, Strategy
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
+
+from gaia_app.lit.staged_checkpoints import StagedSave
 
 BLOCKS = "blocks"
 POLICY_KEYS = ("auto_wrap_policy", "activation_checkpointing_policy")
@@ -118,7 +124,15 @@ def fill_missing_optimizer_state(optimizer: torch.optim.Optimizer) -> int:
     return len(missing)
 
 
-class FSDP2Strategy(ModelParallelStrategy):
+class StagedFSDPStrategy(StagedSave, FSDPStrategy):
+    """Lightning's FSDPStrategy whose checkpoints are staged and swapped in whole (StagedSave)."""
+
+
+class StagedDeepSpeedStrategy(StagedSave, DeepSpeedStrategy):
+    """Lightning's DeepSpeedStrategy whose checkpoint folders are staged and swapped in whole (StagedSave)."""
+
+
+class FSDP2Strategy(StagedSave, ModelParallelStrategy):
     """FSDP2 (`fully_shard`) as Lightning's `ModelParallelStrategy`, sharding a GaiaModule without model code.
 
     After `configure_model()` built the net, each block of the net's `block_types` is sharded on the data-parallel

@@ -16,6 +16,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from gaia_app.lit.compile import CompileNet
+from gaia_app.lit.staged_checkpoints import recover_checkpoint
 from gaia_app.lit.strategies import build_strategy
 from gaia_app.tasks.settings import TRAIN_RULES, check_settings
 from gaia_app.utils.run_dir import save_resolved_config
@@ -39,6 +40,7 @@ def resume_path(ckpt_path: str | None, run_dir: Path) -> str | None:
     if ckpt_path in (None, ""):
         return None
     if ckpt_path == "last":
+        recover_checkpoint(run_dir / "checkpoints" / "last.ckpt")  # a sharded save interrupted mid-swap
         last = newest_last(run_dir / "checkpoints")
         if not last.exists():
             log.info("ckpt_path=last: no checkpoint in %s yet, so this run starts fresh from step 0", last.parent)
