@@ -41,15 +41,42 @@ def test_the_study_draws_both_figures_and_reads_every_arm_and_metric(tmp_path: P
 
 
 def test_every_point_is_the_one_its_table_gives() -> None:
-    """The JSON and docs/paper_faithful.md must not drift apart: each contrast error of a point is in the doc."""
+    """The JSON and docs/paper_faithful.md must not drift apart: each point's contrast errors, text shares and agent
+    IoU are in its section of the doc, and the doc's crossing table is the script's."""
     bench = load_benchmark("paper_faithful_figure")
     doc = (ROOT / "docs" / "paper_faithful.md").read_text()
     study = bench.load_study()
     for family in ("gaia1", "gaia2"):
         for point in study[family]["points"]:
+            section = section_of(doc, point["source"])
+            where = (family, point["arm"], point["budget"])
             for metric, digits in (("speed", 3), ("curvature", 4)):
                 mean, half = point[metric]
-                assert f"{mean:.{digits}f} ± {half:.{digits}f}" in doc, (family, point["arm"], point["budget"], metric)
+                assert f"{mean:.{digits}f} ± {half:.{digits}f}" in section, (*where, metric)
+            for prompt, shares in point.get("text", {}).items():
+                prompted, unprompted = (k / n for k, n in (shares["prompted"], shares["unprompted"]))
+                assert f"{prompted:.2f} / {unprompted:.2f}" in section, (*where, prompt)
+            for key, (mean, low, high) in point.get("agent_iou", {}).items():
+                assert f"{mean:.3f} [{low:.3f}, {high:.3f}]" in section, (*where, key)
+    speed = next(r for r in bench.crossings(study) if r["arm"] == "paper" and r["metric"] == "speed")
+    assert speed["crossing"] == "≈ 3.0e+19 FLOPs (2387× the largest)" and "2 387× the GPU budget" in doc
+
+
+def section_of(doc: str, source: str) -> str:
+    """The text of docs/paper_faithful.md under the heading whose anchor `source` names, to the next heading (lines
+    in code fences are no headings)."""
+    anchor, fenced, found, lines = source.split("#", 1)[1], False, False, []
+    for line in doc.splitlines():
+        fenced ^= line.startswith("```")
+        if line.startswith("#") and not fenced:
+            if found:
+                break
+            heading = line.lstrip("# ").lower()
+            found = "".join(c for c in heading if c.isalnum() or c in " -").replace(" ", "-") == anchor
+        elif found:
+            lines.append(line)
+    assert found, f"no heading with anchor #{anchor} in docs/paper_faithful.md"
+    return "\n".join(lines)
 
 
 def test_a_point_without_a_field_is_refused_by_name(tmp_path: Path) -> None:

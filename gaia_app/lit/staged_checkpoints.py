@@ -47,7 +47,10 @@ def recover_checkpoint(path: str | Path) -> Path:
     if not path.exists() and old.exists():
         log.warning("%s is missing and %s holds the checkpoint before an interrupted save: renaming it back", path,
                     old.name)
-        old.rename(path)
+        try:
+            old.rename(path)
+        except FileNotFoundError:  # another rank of the same launch renamed it first
+            pass
     return path
 
 

@@ -46,7 +46,7 @@ def resume_path(ckpt_path: str | None, run_dir: Path) -> str | None:
             log.info("ckpt_path=last: no checkpoint in %s yet, so this run starts fresh from step 0", last.parent)
             return None
         ckpt_path = str(last)
-    elif not Path(ckpt_path).exists():
+    elif not recover_checkpoint(ckpt_path).exists():
         raise FileNotFoundError(f"ckpt_path={ckpt_path}: no such checkpoint")
     check_checkpoint_file(ckpt_path)
     return ckpt_path

@@ -97,3 +97,9 @@ def test_swap_in_replaces_a_file_by_a_folder_and_keeps_nothing_aside(tmp_path: P
     (staged / ".metadata").write_bytes(b"dcp")
     swap_in(staged, path)
     assert contents(path) == {".metadata": "dcp"} and sorted(p.name for p in tmp_path.iterdir()) == ["last.ckpt"]
+
+
+def test_an_explicit_checkpoint_path_is_recovered_too(tmp_path: Path) -> None:
+    torch.save({"state_dict": {"w": torch.zeros(1)}, "global_step": 5}, tmp_path / "last.ckpt.old")
+    assert resume_path(str(tmp_path / "last.ckpt"), tmp_path) == str(tmp_path / "last.ckpt")
+    assert (tmp_path / "last.ckpt").exists()
