@@ -8,7 +8,7 @@ CONSTRAINTS := requirements/constraints.txt
 DEMO_DIR := outputs/demo
 PYTEST_ARGS ?=
 
-.PHONY: demo demo-train test test-slow test-all lint install install-dev benchmarks clean reproduce
+.PHONY: demo demo-train test test-slow test-rehearsal test-all lint install install-dev benchmarks clean reproduce
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -104,18 +104,28 @@ reproduce: install
 # pytest-xdist worker per logical CPU (TEST_WORKERS=0 runs in one process); --dist loadscope keeps each test module
 # on one worker, so module-scoped fixtures (trained tiny models) are built once; --no-loadscope-reorder hands the
 # modules out in collection order, which tests/conftest.py starts with the longest ones.
-# `make test` leaves out the tests marked slow (multi-process DDP/FSDP2/DeepSpeed runs, paper-size presets, the
-# learning runs scored on held-out data (commaVQ, the agent probe, the video decoder), the closed-loop pin, benchmark
-# scripts on the shipped weights and a diagnosis experiment end to end; every line they reach is also reached by the
-# quick tier, see docs/benchmarks.md); `make test-slow` runs those, `make test-all` both. CI runs both.
+# Three tiers, by marker (docs/benchmarks.md, "Three tiers"):
+# - `make test`: the quick tier, everything not marked slow or rehearsal;
+# - `make test-slow`: multi-process DDP/FSDP2/DeepSpeed runs, the learning runs scored on held-out data, the
+#   closed-loop pin, benchmark scripts on the shipped weights;
+# - `make test-rehearsal`: CPU rehearsals of GPU work (the lease scripts' dry runs, one step of each paper-size
+#   preset); run it before a GPU lease and after changing a lease script or a paper preset.
+# CI runs the quick and slow tiers in one pytest session (TEST_MARKS="not rehearsal"): one collection, and the two
+# workers share the slow tier's long tests instead of waiting on them at the end of a second session.
 TEST_WORKERS ?= logical
+TEST_MARKS ?= not slow and not rehearsal
+PYTEST_XDIST = $(PY) -m pytest -n $(TEST_WORKERS) --dist loadscope --no-loadscope-reorder
 test: install-dev lint
-	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadscope --no-loadscope-reorder -m "not slow" $(PYTEST_ARGS)
+	$(PYTEST_XDIST) -m "$(TEST_MARKS)" $(PYTEST_ARGS)
 
 test-slow: install-dev
-	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadscope --no-loadscope-reorder -m slow $(PYTEST_ARGS)
+	$(PYTEST_XDIST) -m "slow and not rehearsal" $(PYTEST_ARGS)
 
-test-all: test test-slow
+test-rehearsal: install-dev
+	$(PYTEST_XDIST) -m rehearsal $(PYTEST_ARGS)
+
+test-all: install-dev lint
+	$(PYTEST_XDIST) $(PYTEST_ARGS)
 
 lint: install-dev
 	$(VENV)/bin/ruff check .

@@ -26,6 +26,7 @@ def gpu_checks(monkeypatch):
     torch.set_num_threads(threads)
 
 
+@pytest.mark.rehearsal
 def test_dry_run_writes_every_check(gpu_checks, monkeypatch, tmp_path) -> None:
     monkeypatch.setattr(sys, "argv", ["gpu_checks.py", "--out", str(tmp_path), "--dry-run", "--tokens-per-call", "3"])
     gpu_checks.main()

@@ -63,7 +63,7 @@ def test_no_cuda_and_bad_steps_are_refused(study, tmp_path: Path, monkeypatch) -
         study.main(["--out", str(tmp_path)])
 
 
-@pytest.mark.slow
+@pytest.mark.rehearsal
 def test_dry_run_encodes_trains_every_arm_and_brings_back_loadable_checkpoints(study, tmp_path: Path) -> None:
     from gaia_app.weights.nets import checkpoint_nets
 

@@ -78,7 +78,7 @@ def test_a_failed_stage_is_recorded_and_stops_the_run(road_users, tmp_path: Path
     assert "xxxxxxxxxx" in log and "never" not in log
 
 
-@pytest.mark.slow
+@pytest.mark.rehearsal
 def test_dry_run_trains_every_stage_and_brings_back_loadable_checkpoints(road_users, tmp_path: Path) -> None:
     from gaia_app.encoders.text import minilm_package_path
 
@@ -124,6 +124,7 @@ def test_slim_paper_checkpoint_reads_minilm_from_its_package_again(road_users, t
     assert slim["hyper_parameters"]["model_cfg"]["text_encoder"]["path"] is None
 
 
+@pytest.mark.rehearsal
 def test_gpu_stubs_stand_in_for_rerun_and_pyav_on_a_lease_machine(tmp_path: Path) -> None:
     """The GPU machine has neither rerun-sdk nor PyAV: with benchmarks/gpu_stubs first on PYTHONPATH the token-cache
     and training entry points still import, and a no-op call returns without logging."""

@@ -73,7 +73,7 @@ def test_the_token_cache_has_the_shipped_layout(tmp_path: Path) -> None:
     assert "trainer=deepspeed_zero2" in args and "trainer.devices=1" in args and "trainer.max_steps=20" in args
 
 
-@pytest.mark.slow
+@pytest.mark.rehearsal
 def test_the_dry_run_trains_and_resumes_fsdp2_on_one_cpu_process(tmp_path: Path) -> None:
     bench = load_benchmark("gpu_strategies")
     result = bench.run_all(tmp_path, ["fsdp2"], steps=4, more=2, budget=280, dry_run=True)

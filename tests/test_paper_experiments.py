@@ -27,7 +27,7 @@ from gaia_app.nn.vit import VisionTransformer
 from gaia_app.tasks.train import train
 from tests.conftest import CLIP_PROJECTION, T5_WIDTH, compose_config, save_tiny_t5
 
-pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.slow]
+pytestmark = [pytest.mark.usefixtures("one_thread"), pytest.mark.rehearsal]
 
 # one CPU process, one step, no validation: the cluster strategies of the paper runs are tested in test_paper_sizes
 ONE_STEP = ["trainer=tiny", "trainer.devices=1", "trainer.num_nodes=1", "trainer.max_steps=1",

@@ -20,9 +20,10 @@ def windows(dataset) -> torch.Tensor:
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_tiny_world_model_beats_unigram_and_copy_previous(shared_data: Path, tmp_path: Path) -> None:
-    """A shortened world_model_commavq run (150 of its 400 steps, ≈ 1 min on 2 cores)."""
+    """A shortened world_model_commavq run (100 of its 400 steps: its best checkpoint is the last one; 83 s on 2 cores
+    of an AVX2 host, 2026-12-05)."""
     overrides = ["experiment=gaia1/world_model_commavq", f"data.path={shared_data}/commavq/tokens.npy",
-                 "trainer.max_steps=150", "extras.print_config=false", "logger=none", "callbacks=model_checkpoint"]
+                 "trainer.max_steps=100", "extras.print_config=false", "logger=none", "callbacks=model_checkpoint"]
     out = train(compose_config("train", overrides, tmp_path))
     best = sorted((tmp_path / "checkpoints").glob("best_step_*.ckpt"))
     assert len(best) == 1, best
@@ -32,5 +33,5 @@ def test_tiny_world_model_beats_unigram_and_copy_previous(shared_data: Path, tmp
     model = model_cross_entropy(lambda x: net(x, module.conditions({"tokens": x})), val)
     copy_prev, _ = copy_previous_cross_entropy(val, net.vocab_size)
     unigram = unigram_cross_entropy(train_windows, val[:, 1:], net.vocab_size)
-    # measured: model ≈ 5.5, copy-previous 6.18, unigram 6.76 nats/token
+    # measured: model 5.54 at 100 steps (≈ 5.5 at 150), copy-previous 6.18, unigram 6.76 nats/token
     assert model < copy_prev - 0.3 and model < unigram - 0.3, (model, copy_prev, unigram)
