@@ -75,6 +75,10 @@ def test_a_zero3_folder_resumes_and_reading_it_names_the_converter(tmp_path: Pat
 
 ENGINE_SCRIPT = """
 import sys, deepspeed, torch
+import importlib
+# one process never uses DeepSpeed's shared-memory all-reduce, whose C++ op is compiled on first use (about
+# 2 minutes on a fresh 2-core machine, in every CI run); by module name, as `deepspeed.comm.torch` is PyTorch
+importlib.import_module("deepspeed.comm.torch").build_shm_op = lambda: None
 from gaia_app.models.gaia1.world_model import WorldModel
 torch.manual_seed(0)
 deepspeed.init_distributed(dist_backend="gloo")

@@ -191,6 +191,10 @@ def test_deepspeed_zero2_step_on_cpu(tmp_path: Path) -> None:
 
 ZERO2_SCRIPT = """
 import deepspeed, torch
+import importlib
+# one process never uses DeepSpeed's shared-memory all-reduce, whose C++ op is compiled on first use (about
+# 2 minutes on a fresh 2-core machine, in every CI run); by module name, as `deepspeed.comm.torch` is PyTorch
+importlib.import_module("deepspeed.comm.torch").build_shm_op = lambda: None
 import torch.nn.functional as F
 from gaia_app.models.gaia1.world_model import WorldModel
 torch.manual_seed(0)
