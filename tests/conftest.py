@@ -52,6 +52,13 @@ def pytest_collection_modifyitems(config, items) -> None:
     items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))  # stable: the rest keep their order
 
 
+# The first lines of a one-process DeepSpeed script run by a test: DeepSpeed would otherwise compile its shared-memory
+# all-reduce op (a C++ build of about 2 minutes on a fresh 2-core machine, in every CI run), which one process never
+# uses. By module name, as the attribute `deepspeed.comm.torch` is PyTorch itself.
+DEEPSPEED_ONE_PROCESS = """import importlib
+importlib.import_module("deepspeed.comm.torch").build_shm_op = lambda: None
+"""
+
 def load_benchmark(name: str) -> ModuleType:
     """benchmarks/<name>.py as a module (the scripts are not a package)."""
     spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")

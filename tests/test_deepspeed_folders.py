@@ -14,7 +14,7 @@ import torch
 
 from gaia_app.tasks.train import resume_path
 from gaia_app.weights.checkpoints import UnsafeCheckpointError, check_checkpoint_file, read_checkpoint
-from tests.conftest import ROOT, Payload
+from tests.conftest import DEEPSPEED_ONE_PROCESS, ROOT, Payload
 
 deepspeed = pytest.importorskip("deepspeed")
 from deepspeed.runtime.fp16.loss_scaler import LossScaler  # noqa: E402
@@ -75,10 +75,6 @@ def test_a_zero3_folder_resumes_and_reading_it_names_the_converter(tmp_path: Pat
 
 ENGINE_SCRIPT = """
 import sys, deepspeed, torch
-import importlib
-# one process never uses DeepSpeed's shared-memory all-reduce, whose C++ op is compiled on first use (about
-# 2 minutes on a fresh 2-core machine, in every CI run); by module name, as `deepspeed.comm.torch` is PyTorch
-importlib.import_module("deepspeed.comm.torch").build_shm_op = lambda: None
 from gaia_app.models.gaia1.world_model import WorldModel
 torch.manual_seed(0)
 deepspeed.init_distributed(dist_backend="gloo")
@@ -93,7 +89,7 @@ torch.save(net.state_dict(), sys.argv[2])
 @pytest.mark.slow
 def test_a_folder_written_by_deepspeed_itself_is_checked_and_read(tmp_path: Path) -> None:
     script = tmp_path / "save.py"
-    script.write_text(ENGINE_SCRIPT)
+    script.write_text(DEEPSPEED_ONE_PROCESS + ENGINE_SCRIPT)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT), "MASTER_ADDR": "127.0.0.1",
            "MASTER_PORT": "29563", "RANK": "0", "LOCAL_RANK": "0", "WORLD_SIZE": "1", "DS_ACCELERATOR": "cpu"}
     folder, weights = tmp_path / "last.ckpt", tmp_path / "weights.pt"

@@ -21,7 +21,7 @@ from gaia_app.lit.strategies import FSDP2Strategy, block_types_of, build_strateg
 from gaia_app.models.gaia1.tokenizer import ImageTokenizer
 from gaia_app.tasks.train import build
 from gaia_app.utils.resolvers import launch_id
-from tests.conftest import ROOT, compose_config
+from tests.conftest import DEEPSPEED_ONE_PROCESS, ROOT, compose_config
 
 NETS = ["gaia1_tokenizer_tiny", "gaia1_world_model_tiny", "gaia1_video_decoder_tiny", "gaia2_video_tokenizer_tiny",
         "gaia2_world_model_tiny"]
@@ -180,7 +180,7 @@ def test_deepspeed_zero2_step_on_cpu(tmp_path: Path) -> None:
     """A raw `deepspeed.initialize` ZeRO-2 run of the tiny world model (Lightning's DeepSpeedStrategy is CUDA-only)."""
     pytest.importorskip("deepspeed")
     script = tmp_path / "zero2.py"
-    script.write_text(ZERO2_SCRIPT)
+    script.write_text(DEEPSPEED_ONE_PROCESS + ZERO2_SCRIPT)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT), "MASTER_ADDR": "127.0.0.1",
            "MASTER_PORT": "29561", "RANK": "0", "LOCAL_RANK": "0", "WORLD_SIZE": "1", "DS_ACCELERATOR": "cpu"}
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=300)
@@ -191,10 +191,6 @@ def test_deepspeed_zero2_step_on_cpu(tmp_path: Path) -> None:
 
 ZERO2_SCRIPT = """
 import deepspeed, torch
-import importlib
-# one process never uses DeepSpeed's shared-memory all-reduce, whose C++ op is compiled on first use (about
-# 2 minutes on a fresh 2-core machine, in every CI run); by module name, as `deepspeed.comm.torch` is PyTorch
-importlib.import_module("deepspeed.comm.torch").build_shm_op = lambda: None
 import torch.nn.functional as F
 from gaia_app.models.gaia1.world_model import WorldModel
 torch.manual_seed(0)
