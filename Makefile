@@ -107,11 +107,12 @@ reproduce: install
 # Three tiers, by marker (docs/benchmarks.md, "Three tiers"):
 # - `make test`: the quick tier, everything not marked slow or rehearsal;
 # - `make test-slow`: multi-process DDP/FSDP2/DeepSpeed runs, the learning runs scored on held-out data, the
-#   closed-loop pin, benchmark scripts on the shipped weights;
+#   closed-loop pin, benchmark scripts on the shipped weights; run it before landing a change (the session's closing
+#   note says it passed) and after changing what it covers;
 # - `make test-rehearsal`: CPU rehearsals of GPU work (the lease scripts' dry runs, one step of each paper-size
 #   preset); run it before a GPU lease and after changing a lease script or a paper preset.
-# CI runs the quick and slow tiers in one pytest session (TEST_MARKS="not rehearsal"): one collection, and the two
-# workers share the slow tier's long tests instead of waiting on them at the end of a second session.
+# CI runs `make test`: with the slow tier it took 34 min on a 2-core AVX2 machine, over its 25 (docs/benchmarks.md).
+# `make test TEST_MARKS="not rehearsal"` runs the quick and slow tiers in one session.
 TEST_WORKERS ?= logical
 TEST_MARKS ?= not slow and not rehearsal
 PYTEST_XDIST = $(PY) -m pytest -n $(TEST_WORKERS) --dist loadscope --no-loadscope-reorder

@@ -30,21 +30,25 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 torch.set_num_threads(1 if os.environ.get("PYTEST_XDIST_WORKER") else 2)
 
 
-# The modules that take longest (seconds summed over their tests under CI's `make test TEST_MARKS="not rehearsal"`,
-# quick and slow tiers together, 2026-12-05: from 570 down to 30), collected first: with `--dist loadscope
-# --no-loadscope-reorder` (Makefile) each worker takes the next module in this order, so the long ones start early and
-# the two workers finish together on the short ones instead of one running a long module alone at the end (xdist's
-# own reorder puts modules with many tests first, not long ones). A stale list costs only balance, never a test.
-LONGEST_MODULES = ["test_simulator.py", "test_eval_latent_world_model.py", "test_headline_claims.py",
-                   "test_world_model_commavq.py", "test_gaia2_generate.py", "test_distributed.py",
-                   "test_shards_ddp.py", "test_deepspeed_folders.py", "test_generate_rollouts.py",
-                   "test_video_decoder_training.py", "test_train.py", "test_shipped_weights.py",
-                   "test_agent_futures.py", "test_road_users_weights.py", "test_simulator_gym.py", "test_agent_iou.py",
-                   "test_encode_latents.py", "test_controllability.py", "test_bench_simulator_step.py",
-                   "test_pandaset_chain.py", "test_eval_video_decoder.py", "test_settings.py",
-                   "lit/test_gaia1_tokenizer.py", "test_scaling.py", "test_compiled_decode.py",
-                   "data/test_synthetic.py", "test_vector_simulator.py", "test_feature_distance.py",
-                   "test_shipped_gaia2_weights.py", "lit/test_gaia2_video_tokenizer.py", "test_agent_fidelity.py"]
+# The modules that take longest (seconds summed over their quick-tier tests, CI's `make test`, on a fresh clone,
+# 2026-12-05: from 206 down to 15), collected first, with the slow tier's longest (the closed-loop pin in
+# test_simulator.py, commaVQ, the sharded and multi-process runs) placed early for `make test-slow`: with `--dist
+# loadscope --no-loadscope-reorder` (Makefile) each worker takes the next module in this order, so the long ones start
+# early and the two workers finish together on the short ones instead of one running a long module alone at the end
+# (xdist's own reorder puts modules with many tests first, not long ones). A stale list costs only balance, never a
+# test.
+LONGEST_MODULES = ["test_gaia2_generate.py", "test_simulator.py", "test_world_model_commavq.py", "test_shards_ddp.py",
+                   "test_generate_rollouts.py",
+                   "test_headline_claims.py", "test_configs.py", "test_train.py", "test_simulator_gym.py",
+                   "test_eval_latent_world_model.py", "test_distributed.py", "test_agent_iou.py",
+                   "test_video_decoder_training.py", "test_shipped_weights.py",
+                   "test_controllability.py", "test_encode_latents.py", "test_road_users_weights.py",
+                   "test_settings.py", "test_pandaset_chain.py", "test_vector_simulator.py",
+                   "test_compiled_decode.py", "data/test_synthetic.py", "test_agent_futures.py",
+                   "test_feature_distance.py", "test_agent_fidelity.py", "test_scaling.py",
+                   "lit/test_gaia2_video_tokenizer.py", "lit/test_gaia1_tokenizer.py",
+                   "test_shipped_gaia2_weights.py", "test_bench_simulator_step.py", "test_tokenize.py",
+                   "test_hostile_inputs.py"]
 
 
 def pytest_collection_modifyitems(config, items) -> None:

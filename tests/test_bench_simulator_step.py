@@ -26,6 +26,7 @@ def test_the_compiled_path_is_the_session_with_the_compiled_decode_step() -> Non
     assert blocked.pipeline.rollouts.sampler.tokens_per_call == 4
 
 
+@pytest.mark.slow  # the profiler over a whole simulator step (13 s)
 def test_the_profile_names_the_operators_of_a_step() -> None:
     bench = load_benchmark("bench_simulator_step")
     env = bench.paths(Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=False), full=False)["session"]
