@@ -133,7 +133,6 @@ def load_benchmark():
     return module
 
 
-@pytest.mark.slow  # a benchmark script on the shipped weights (34 s)
 def test_the_benchmark_scores_the_shipped_weights_and_draws_the_strip(tmp_path: Path) -> None:
     bench = load_benchmark()
     out = tmp_path / "out"
