@@ -37,6 +37,7 @@ def test_the_gaia1_manifest_lists_every_file_and_the_tokenizer_has_the_finer_gri
         assert net.encode(torch.zeros(1, 3, 64, 112)).shape[-2:] == (16, 28)  # D = 4: 448 tokens per frame
 
 
+@pytest.mark.slow
 def test_the_gaia1_road_users_tokenizer_keeps_the_agents_the_shipped_one_loses(tmp_path: Path) -> None:
     """16 clips of world 6101 (used for nothing else), side by side with the shipped tokenizer and its paired
     interval; measured over 128 clips of world 5071 (docs/tokenizer.md): agent_iou_ratio 0.818 against the shipped
@@ -68,6 +69,7 @@ def test_the_gaia2_road_users_world_model_reads_agents_by_cross_attention_only()
     assert net.agent_box_attention and info["latent_scale"] == 0.375
 
 
+@pytest.mark.slow
 def test_the_gaia2_road_users_tokenizer_keeps_more_agents_than_the_shipped_one(tmp_path: Path) -> None:
     """12 clips of world 6111 (used for nothing else), side by side with the shipped GAIA-2 tokenizer; measured over
     128 clips of world 5101 (docs/tokenizer.md, gaia_app/weights/gaia2_road_users/MANIFEST.md): 0.810 against the

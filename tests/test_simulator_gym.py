@@ -3,10 +3,12 @@ action, seed or option refused with a one-line error naming it, its value and wh
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import gymnasium
@@ -28,23 +30,37 @@ def pipeline() -> Gaia1Pipeline:
     return Gaia1Pipeline.from_weights(shipped_folder("gaia1"), video_decoder=False)
 
 
-def checked(env: gymnasium.Env) -> None:
-    """check_env, its advice that a physical action range is not [-1, 1] left out (the units are the point)."""
+@contextlib.contextmanager
+def checker_warnings_fail() -> Iterator[None]:
+    """Every warning raises, but the checkers' advice that a physical action range is not [-1, 1] (the units are
+    the point) and that a wrapped env is not the raw one."""
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # any other checker warning fails the test
+        warnings.simplefilter("error")
         warnings.filterwarnings("ignore", message=".*symmetric and normalized space.*")
         warnings.filterwarnings("ignore", message=".*different from the unwrapped version.*")
+        yield
+
+
+def checked(env: gymnasium.Env) -> None:
+    """check_env, its warnings failing the test (checker_warnings_fail)."""
+    with checker_warnings_fail():
         check_env(env)
 
 
 def test_check_env_passes_on_the_env_and_through_make() -> None:
+    """check_env on the raw env (gymnasium's advice), and one reset and step through make's wrappers, whose passive
+    checker checks the first of each: the checker's own warnings fail the test either way."""
     env = gymnasium.make(DRIVE_ENV, weights="gaia1", max_steps=4)
     assert isinstance(env.unwrapped, DrivingSimulator) and env.spec.id == DRIVE_ENV
     assert isinstance(env.observation_space, gymnasium.spaces.Box) and env.observation_space.dtype == np.uint8
     assert env.observation_space.shape == (64, 112, 3)
     assert env.action_space.dtype == np.float32 and env.action_space.low.tolist() == [0.0, -0.5]
     checked(env.unwrapped)
-    checked(env)
+    with checker_warnings_fail():
+        obs, _ = env.reset(seed=3)
+        assert env.observation_space.contains(obs)
+        obs, reward, terminated, truncated, _ = env.step(np.array([10.0, 0.0], dtype=np.float32))
+        assert env.observation_space.contains(obs) and not terminated and not truncated
 
 
 def test_make_takes_a_weights_folder_path_and_render_mode() -> None:
