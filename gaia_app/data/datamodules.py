@@ -14,6 +14,7 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from gaia_app.data.clip import ClipError
 from gaia_app.data.collate import collate_clips, collate_frames, collate_token_windows
 from gaia_app.data.datasets import ClipsDataset, ClipSource, FramesDataset
+from gaia_app.data.resumable import train_loader
 from gaia_app.data.sampling import BalancedSampler, balancing_weights, clip_features
 from gaia_app.data.token_cache import TokenWindows, find_segments, load_segment, split_spans
 
@@ -165,17 +166,15 @@ class ClipSourceDataModule(L.LightningDataModule, ABC):
                                     self.balance["exponent"])
         return BalancedSampler(weights, seed=self.split_seed)
 
-    def _loader(self, dataset: Dataset, shuffle: bool, sampler=None) -> DataLoader:
-        return DataLoader(dataset, batch_size=self.batch_size, shuffle=shuffle and sampler is None, sampler=sampler,
-                          num_workers=self.num_workers, collate_fn=self.collate,
-                          persistent_workers=self.num_workers > 0,
-                          drop_last=shuffle and len(dataset) >= self.batch_size)
-
     def train_dataloader(self) -> DataLoader:
-        return self._loader(self.train_set, shuffle=True, sampler=self._sampler())
+        return train_loader(self, self.train_set, self.batch_size, sampler=self._sampler(),
+                            num_workers=self.num_workers, collate_fn=self.collate,
+                            persistent_workers=self.num_workers > 0,
+                            drop_last=len(self.train_set) >= self.batch_size)
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader(self.val_set, shuffle=False)
+        return DataLoader(self.val_set, batch_size=self.batch_size, num_workers=self.num_workers,
+                          collate_fn=self.collate, persistent_workers=self.num_workers > 0)
 
 
 class FrameDataModule(ClipSourceDataModule):
@@ -273,8 +272,8 @@ class TokenCacheDataModule(L.LightningDataModule):
         self.val_set = TokenWindows(segments, val, self.seq_len, self.seq_len)
 
     def train_dataloader(self) -> DataLoader:
-        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, num_workers=self.num_workers,
-                          drop_last=True, collate_fn=collate_token_windows)
+        return train_loader(self, self.train_set, self.batch_size, num_workers=self.num_workers,
+                            drop_last=True, collate_fn=collate_token_windows)
 
     def val_dataloader(self) -> DataLoader:
         return DataLoader(self.val_set, batch_size=self.batch_size, num_workers=self.num_workers,

@@ -21,6 +21,7 @@ from gaia_app.data.clip import ClipError
 from gaia_app.data.collate import stack_labels
 from gaia_app.data.latent_cache import LatentClip, find_latent_clips, read_latent_clip
 from gaia_app.data.metadata import MetadataEncoder
+from gaia_app.data.resumable import train_loader
 
 
 class LatentWindows(Dataset):
@@ -122,9 +123,9 @@ class LatentCacheDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         # persistent workers: an epoch is one window per clip, so short that re-forking workers each epoch shows
-        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, num_workers=self.num_workers,
-                          drop_last=len(self.train_set) >= self.batch_size, collate_fn=collate_latent_windows,
-                          persistent_workers=self.num_workers > 0)
+        return train_loader(self, self.train_set, self.batch_size, num_workers=self.num_workers,
+                            drop_last=len(self.train_set) >= self.batch_size,
+                            collate_fn=collate_latent_windows, persistent_workers=self.num_workers > 0)
 
     def val_dataloader(self) -> DataLoader:
         return DataLoader(self.val_set, batch_size=self.batch_size, num_workers=self.num_workers,

@@ -108,4 +108,5 @@ def test_balanced_loader_uses_metadata() -> None:
     dm.setup("fit")
     loader = dm.train_dataloader()
     assert len(loader) == len(dm.train_set)
-    assert loader.sampler.weights.max() == 1.0 and loader.sampler.weights.min() < 0.2
+    balanced = loader.sampler.inner  # the balancing sampler, inside the resumable loader's order
+    assert balanced.weights.max() == 1.0 and balanced.weights.min() < 0.2
