@@ -259,6 +259,12 @@ class ShardLoader(DataLoader):
         return {"epoch": epoch, "taken": list(taken)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        if "taken" not in state:  # a folder loader's state (gaia_app/data/resumable.py): no place in this stream
+            if state.get("items"):
+                log.warning("resuming a sharded loader from a checkpoint of a folder loader taken inside epoch %s: "
+                            "that epoch of the stream starts from its beginning", state.get("epoch"))
+            self.epoch = int(state.get("epoch", 0))
+            return
         if len(state["taken"]) != self.workers:
             raise ValueError(f"resuming a sharded loader saved with {len(state['taken'])} workers with "
                              f"data.num_workers={self.workers}: keep the worker count to resume mid-epoch")

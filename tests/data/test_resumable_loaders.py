@@ -48,14 +48,13 @@ def test_a_resumed_loader_goes_on_with_the_rest_of_its_epoch(workers: int) -> No
         if i == 2:
             state = first.state_dict()
             break
-    assert state == {"epoch": 0, "items": 12, "length": 23, "seed": 5}
+    assert state == {"epoch": 0, "items": 12, "batch_size": 4, "length": 23, "seed": 5}
     resumed = loader()
     resumed.load_state_dict(json.loads(json.dumps(state)))  # what a checkpoint stores
     rest = list(resumed)
     assert items(taken) + items(rest) == full  # nothing repeated, nothing skipped, the same order
     assert resumed.state_dict()["epoch"] == 1 and resumed.state_dict()["items"] == 0  # that epoch is over
-    resumed.order.set_epoch(1)
-    second = items(resumed)
+    second = items(resumed)  # outside a trainer a complete pass moves to the next epoch, as shuffle=True would
     assert len(second) == 20 and second != full  # the next epoch: whole, in a new order
 
 
@@ -75,9 +74,9 @@ def test_a_balanced_sampler_resumes_too() -> None:
 
 def test_a_state_from_another_split_starts_the_epoch_afresh_and_says_so(caplog) -> None:
     loader = ResumableLoader(Indices(12), EpochShuffle(12, seed=1), batch_size=3)
-    loader.load_state_dict({"epoch": 2, "items": 6, "length": 15, "seed": 1})
+    loader.load_state_dict({"epoch": 2, "items": 6, "batch_size": 3, "length": 15, "seed": 1})
     assert "starts afresh" in caplog.text and "15" in caplog.text
-    assert len(items(loader)) == 12 and loader.order.epoch == 2
+    assert loader.order.epoch == 2 and len(items(loader)) == 12
 
 
 def test_the_folder_datamodules_train_through_a_resumable_loader(tmp_path: Path) -> None:
@@ -106,14 +105,18 @@ class IndexData(L.LightningDataModule):
 
 
 class Recorder(L.LightningModule):
-    """Trains one weight and records the items of every step."""
+    """Trains one weight and records the items of every step; `crash_at` stops the run inside that step, as a
+    kill or a preemption does."""
 
-    def __init__(self):
+    def __init__(self, crash_at: int | None = None):
         super().__init__()
         self.weight = torch.nn.Parameter(torch.zeros(()))
         self.seen: list[int] = []
+        self.crash_at = crash_at
 
     def training_step(self, batch, batch_idx):
+        if self.global_step == self.crash_at:
+            raise KeyboardInterrupt
         self.seen.extend(int(i) for i in batch)
         return (self.weight - batch.float().mean()) ** 2
 
@@ -121,22 +124,63 @@ class Recorder(L.LightningModule):
         return torch.optim.SGD(self.parameters(), lr=0.01)
 
 
-def fit(root: Path, max_steps: int, resume: bool) -> list[int]:
+def fit(root: Path, max_steps: int, resume: bool, batch_size: int = 3, crash_at: int | None = None,
+        **trainer_args) -> list[int]:
     L.seed_everything(7)
-    model = Recorder()
+    model = Recorder(crash_at)
     checkpoints = L.pytorch.callbacks.ModelCheckpoint(dirpath=root, every_n_train_steps=1, save_last=True)
+    # written inside the interrupted step, over the last step's last.ckpt (and removed by a run that ends well)
+    on_crash = [L.pytorch.callbacks.OnExceptionCheckpoint(root, "last")] if crash_at is not None else []
     trainer = L.Trainer(max_steps=max_steps, accelerator="cpu", logger=False, enable_progress_bar=False,
-                        enable_model_summary=False, callbacks=[checkpoints], num_sanity_val_steps=0)
-    trainer.fit(model, IndexData(n=10, batch_size=3), ckpt_path=str(root / "last.ckpt") if resume else None)
+                        enable_model_summary=False, callbacks=[checkpoints, *on_crash], num_sanity_val_steps=0,
+                        **trainer_args)
+    try:
+        trainer.fit(model, IndexData(n=10, batch_size=batch_size),
+                    ckpt_path=str(root / "last.ckpt") if resume else None)
+    except SystemExit:  # Lightning's answer to the interrupt, after OnExceptionCheckpoint wrote last.ckpt
+        assert crash_at is not None
     return model.seen
 
 
-def test_a_run_resumed_mid_epoch_trains_on_the_items_of_one_that_never_stopped(tmp_path: Path) -> None:
-    whole = fit(tmp_path / "whole", max_steps=7, resume=False)  # 3 batches an epoch: epochs 0, 1 and one step of 2
-    first = fit(tmp_path / "stopped", max_steps=4, resume=False)  # stops after one step of epoch 1
-    rest = fit(tmp_path / "stopped", max_steps=7, resume=True)
-    assert first + rest == whole
-    assert len(whole) == 21 and sorted(whole[:9]) == sorted(set(whole[:9]))
+@pytest.fixture(scope="module")
+def whole(tmp_path_factory) -> list[int]:
+    """A run that never stopped: 3 batches of 3 an epoch, epochs 0 and 1 and one step of epoch 2."""
+    items = fit(tmp_path_factory.mktemp("whole"), max_steps=7, resume=False)
+    assert len(items) == 21 and sorted(items[:9]) == sorted(set(items[:9]))
+    return items
+
+
+def test_a_run_resumed_mid_epoch_trains_on_the_items_of_one_that_never_stopped(whole, tmp_path: Path) -> None:
+    first = fit(tmp_path, max_steps=4, resume=False)  # stops after one step of epoch 1
+    assert first + fit(tmp_path, max_steps=7, resume=True) == whole
+
+
+def test_a_run_killed_inside_a_step_trains_that_steps_batch_again(whole, tmp_path: Path) -> None:
+    first = fit(tmp_path, max_steps=7, resume=False, crash_at=4)  # killed inside step 5, the second of epoch 1
+    assert torch.load(tmp_path / "last.ckpt", weights_only=False)["global_step"] == 4
+    assert first + fit(tmp_path, max_steps=7, resume=True) == whole
+
+
+def test_resuming_inside_an_epoch_with_another_batch_size_is_refused(tmp_path: Path) -> None:
+    fit(tmp_path, max_steps=4, resume=False)
+    with pytest.raises(ValueError, match="cut in batches of 3, with data.batch_size=2"):
+        fit(tmp_path, max_steps=6, resume=True, batch_size=2)
+
+
+def test_a_single_device_checkpoint_resumes_under_ddp_and_says_the_epoch_is_drawn_afresh(tmp_path: Path,
+                                                                                         caplog) -> None:
+    fit(tmp_path, max_steps=4, resume=False)
+    rest = fit(tmp_path, max_steps=6, resume=True, strategy="ddp", devices=1)  # Lightning rebuilds a plain loader
+    assert len(rest) == 6 and "drawn afresh" in caplog.text
+
+
+def test_a_checkpoint_without_a_loader_state_resumed_mid_epoch_says_so(tmp_path: Path, caplog) -> None:
+    fit(tmp_path, max_steps=4, resume=False)
+    checkpoint = torch.load(tmp_path / "last.ckpt", weights_only=False)
+    del checkpoint["loops"]["fit_loop"]["state_dict"]["combined_loader"]  # as written before the loaders kept one
+    torch.save(checkpoint, tmp_path / "last.ckpt")
+    fit(tmp_path, max_steps=6, resume=True)
+    assert "resumed after 1 batches of epoch 1" in caplog.text
 
 
 @pytest.mark.parametrize("strategy, overfit", [("ddp", 0), ("fsdp", 0), ("single", 2)])

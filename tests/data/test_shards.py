@@ -125,6 +125,13 @@ def test_a_resumed_loader_neither_repeats_nor_skips(tokens, workers: int) -> Non
     assert resumed.state_dict() == {"epoch": 1, "taken": [0] * max(1, workers)}  # the epoch is over
 
 
+def test_a_folder_loaders_state_resumes_the_stream_at_its_epoch(tokens, caplog) -> None:
+    _, shards = tokens
+    loader = token_module(shards).train_dataloader()
+    loader.load_state_dict({"epoch": 2, "items": 6, "batch_size": 3, "length": 30, "seed": 0})  # resumable.py's
+    assert loader.epoch == 2 and "starts from its beginning" in caplog.text
+
+
 def test_resuming_with_another_worker_count_is_refused(tokens) -> None:
     _, shards = tokens
     with pytest.raises(ValueError, match="keep the worker count"):
