@@ -49,20 +49,24 @@ class EpochShuffle(Sampler[int]):
 class ResumableSampler(Sampler[int]):
     """`inner` (an order fixed by its epoch, through `set_epoch`) with the first `skip` items of one epoch left out:
     those a resumed run's steps had already used. Its length stays the whole epoch's, the number Lightning counts a
-    resumed epoch's batches against."""
+    resumed epoch's batches against.
+
+    `offset`: Lightning's epoch number minus the epoch whose order it gets. It grows by one when Lightning resumes an
+    epoch it had closed early under the next number (`ResumableLoader.line_up`), so the orders still run 0, 1, 2, …
+    """
 
     def __init__(self, inner: Sampler[int]):
-        self.inner, self.epoch = inner, 0
+        self.inner, self.epoch, self.offset = inner, 0, 0
         self.resume = (-1, 0)  # (epoch, items to skip in it)
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
         if hasattr(self.inner, "set_epoch"):
-            self.inner.set_epoch(epoch)
+            self.inner.set_epoch(epoch - self.offset)
 
-    def resume_at(self, epoch: int, skip: int) -> None:
+    def resume_at(self, epoch: int, skip: int, offset: int = 0) -> None:
+        self.resume, self.offset = (epoch, skip), offset
         self.set_epoch(epoch)
-        self.resume = (epoch, skip)
 
     def skipped(self) -> int:
         """Items left out of the current epoch (0 unless it is the resumed one)."""
@@ -97,9 +101,10 @@ class ResumableLoader(DataLoader):
 
     trainer: the trainer whose fit loop counts the finished batches (None: every batch handed out counts, and each
     complete pass moves to the next epoch, as a shuffling DataLoader gives a new order per pass).
-    State: {"epoch", "items" (finished in that epoch), "batch_size", "length" (of an epoch), "seed" (of an
-    EpochShuffle, else None)}. A state from a split of another size starts its epoch afresh with a warning; one cut
-    in batches of another size is refused (Lightning would count the resumed epoch's batches wrongly)."""
+    State: {"epoch" (Lightning's number), "order" (the epoch whose order it serves), "items" (finished in that
+    epoch), "batch_size", "length" (of an epoch), "seed" (of an EpochShuffle, else None)}. A state from a split of
+    another size starts its epoch afresh with a warning; one cut in batches of another size is refused (Lightning
+    would count the resumed epoch's batches wrongly)."""
 
     def __init__(self, dataset: Dataset, sampler: Sampler[int], batch_size: int, trainer: Any = None,
                  **kwargs: Any):
@@ -111,7 +116,7 @@ class ResumableLoader(DataLoader):
     def __iter__(self) -> Iterator[Any]:
         if not self.checked:
             self.checked = True
-            warn_if_resumed_inside_an_epoch(self.trainer, self.restored)
+            self.line_up()
         epoch = self.order.epoch
         self.handed = (epoch, self.order.skipped() // self.batch_size)
         for batch in super().__iter__():
@@ -120,15 +125,46 @@ class ResumableLoader(DataLoader):
         if self.trainer is None:
             self.order.set_epoch(epoch + 1)
 
+    def line_up(self) -> None:
+        """On the first pass under a trainer (after Lightning has set the epoch and restored its batch count), line
+        the restored place up with where Lightning resumes, or warn that the epoch is drawn afresh."""
+        trainer = self.trainer
+        if trainer is None or not self.restored:
+            warn_if_resumed_inside_an_epoch(trainer, self.restored)
+            return
+        (saved, items), offset = self.order.resume, self.order.offset
+        finished, now = finished_batches(trainer), self.order.epoch
+        if finished == items // self.batch_size and now == saved:
+            return
+        if finished == items // self.batch_size and now == saved + 1:
+            # Lightning resumes this epoch under the next number: a last.ckpt written when the run stopped inside an
+            # epoch (FinalStepCheckpoint at max_steps or max_time), or one written at an epoch's end in a max_steps
+            # run (Lightning's epoch count runs one ahead there); the orders stay 0, 1, 2, … all the same
+            self.order.resume_at(now, items, offset + 1)
+            return
+        if items or finished:
+            log.warning("the checkpoint's train loader stopped after %d items of epoch %d, but Lightning resumes after "
+                        "%s batches of epoch %d: the rest of that epoch is drawn afresh, so some items can come twice "
+                        "and others not at all", items, saved, finished, now)
+        self.order.resume = (-1, 0)
+        self.order.set_epoch(now)
+
+    def batches_per_epoch(self) -> int:
+        """The batches of a whole epoch, or as many as the trainer takes of it (`limit_train_batches`)."""
+        whole = len(self.batch_sampler)  # type: ignore[arg-type]
+        taken = getattr(self.trainer, "num_training_batches", whole)
+        return whole if not isinstance(taken, int) else min(whole, taken)
+
     def state_dict(self) -> dict[str, Any]:
         epoch, batches = self.handed
         finished = finished_batches(self.trainer)
         batches = batches if finished is None else finished
-        if batches >= len(self.batch_sampler):  # type: ignore[arg-type]  # that epoch is over: the next starts afresh
+        if batches >= self.batches_per_epoch():  # that epoch is over: the next starts afresh
             epoch, batches = epoch + 1, 0
         inner = self.order.inner
-        return {"epoch": epoch, "items": batches * self.batch_size, "batch_size": self.batch_size,
-                "length": len(self.order), "seed": inner.seed if isinstance(inner, EpochShuffle) else None}
+        return {"epoch": epoch, "order": epoch - self.order.offset, "items": batches * self.batch_size,
+                "batch_size": self.batch_size, "length": len(self.order),
+                "seed": inner.seed if isinstance(inner, EpochShuffle) else None}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if "items" not in state:  # saved by a PlainTrainLoader: it kept no place
@@ -147,7 +183,7 @@ class ResumableLoader(DataLoader):
             self.restored = True
         if isinstance(self.order.inner, EpochShuffle) and state.get("seed") is not None:
             self.order.inner.seed = int(state["seed"])
-        self.order.resume_at(epoch, items)
+        self.order.resume_at(epoch, items, epoch - int(state.get("order", epoch)))
         self.handed = (epoch, items // self.batch_size)
 
 

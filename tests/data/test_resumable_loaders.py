@@ -16,6 +16,7 @@ from gaia_app.data.datamodules import FrameDataModule, TokenCacheDataModule
 from gaia_app.data.latent_windows import LatentCacheDataModule
 from gaia_app.data.resumable import EpochShuffle, ResumableLoader, train_loader
 from gaia_app.data.sampling import BalancedSampler
+from gaia_app.lit.callbacks import FinalStepCheckpoint
 
 
 class Indices(Dataset):
@@ -48,7 +49,7 @@ def test_a_resumed_loader_goes_on_with_the_rest_of_its_epoch(workers: int) -> No
         if i == 2:
             state = first.state_dict()
             break
-    assert state == {"epoch": 0, "items": 12, "batch_size": 4, "length": 23, "seed": 5}
+    assert state == {"epoch": 0, "order": 0, "items": 12, "batch_size": 4, "length": 23, "seed": 5}
     resumed = loader()
     resumed.load_state_dict(json.loads(json.dumps(state)))  # what a checkpoint stores
     rest = list(resumed)
@@ -124,11 +125,12 @@ class Recorder(L.LightningModule):
         return torch.optim.SGD(self.parameters(), lr=0.01)
 
 
-def fit(root: Path, max_steps: int, resume: bool, batch_size: int = 3, crash_at: int | None = None,
+def fit(root: Path, max_steps: int, resume: bool, batch_size: int = 3, crash_at: int | None = None, every: int = 1,
         **trainer_args) -> list[int]:
     L.seed_everything(7)
     model = Recorder(crash_at)
-    checkpoints = L.pytorch.callbacks.ModelCheckpoint(dirpath=root, every_n_train_steps=1, save_last=True)
+    # the project's checkpoint callback: last.ckpt also holds a final step off the `every` grid (written at train end)
+    checkpoints = FinalStepCheckpoint(dirpath=root, every_n_train_steps=every, save_last=True)
     # written inside the interrupted step, over the last step's last.ckpt (and removed by a run that ends well)
     on_crash = [L.pytorch.callbacks.OnExceptionCheckpoint(root, "last")] if crash_at is not None else []
     trainer = L.Trainer(max_steps=max_steps, accelerator="cpu", logger=False, enable_progress_bar=False,
@@ -153,6 +155,30 @@ def whole(tmp_path_factory) -> list[int]:
 def test_a_run_resumed_mid_epoch_trains_on_the_items_of_one_that_never_stopped(whole, tmp_path: Path) -> None:
     first = fit(tmp_path, max_steps=4, resume=False)  # stops after one step of epoch 1
     assert first + fit(tmp_path, max_steps=7, resume=True) == whole
+
+
+@pytest.mark.parametrize("stop", [3, 6])
+def test_a_run_stopped_at_an_epochs_end_resumes_with_the_next_epochs_order(whole, tmp_path: Path, stop: int) -> None:
+    first = fit(tmp_path, max_steps=stop, resume=False)
+    assert first + fit(tmp_path, max_steps=7, resume=True) == whole
+
+
+def test_an_epoch_cut_short_by_limit_train_batches_counts_as_over(tmp_path: Path) -> None:
+    limited = {"limit_train_batches": 2}  # 2 of the 3 batches an epoch
+    whole = fit(tmp_path / "whole", max_steps=5, resume=False, **limited)
+    first = fit(tmp_path / "stopped", max_steps=2, resume=False, **limited)
+    state = torch.load(tmp_path / "stopped" / "last.ckpt", weights_only=False)["loops"]["fit_loop"]["state_dict"]
+    assert state["combined_loader"][0]["epoch"] == 1 and state["combined_loader"][0]["items"] == 0
+    assert first + fit(tmp_path / "stopped", max_steps=5, resume=True, **limited) == whole
+
+
+def test_a_run_that_stopped_off_its_checkpoint_grid_resumes_from_its_final_step(whole, tmp_path: Path) -> None:
+    """max_steps 4 with checkpoints every 3 steps: last.ckpt is written at train end, after Lightning has closed the
+    unfinished epoch 1; the resumed run serves the rest of epoch 1's order under Lightning's epoch 2."""
+    first = fit(tmp_path, max_steps=4, resume=False, every=3)
+    assert torch.load(tmp_path / "last.ckpt", weights_only=False)["global_step"] == 4
+    second = fit(tmp_path, max_steps=5, resume=True, every=3)  # and once more off the grid, inside the carried epoch
+    assert first + second + fit(tmp_path, max_steps=7, resume=True, every=3) == whole
 
 
 def test_a_run_killed_inside_a_step_trains_that_steps_batch_again(whole, tmp_path: Path) -> None:
