@@ -193,10 +193,16 @@ def test_resuming_inside_an_epoch_with_another_batch_size_is_refused(tmp_path: P
         fit(tmp_path, max_steps=6, resume=True, batch_size=2)
 
 
-def test_a_single_device_checkpoint_resumes_under_ddp_and_says_the_epoch_is_drawn_afresh(tmp_path: Path,
-                                                                                         caplog) -> None:
+def test_a_single_device_checkpoint_resumes_under_ddp_and_says_the_epoch_is_drawn_afresh(tmp_path: Path, caplog,
+                                                                                         monkeypatch) -> None:
+    for name in ("MASTER_ADDR", "MASTER_PORT", "NODE_RANK", "LOCAL_RANK"):  # Lightning's DDP sets them
+        monkeypatch.delenv(name, raising=False)
     fit(tmp_path, max_steps=4, resume=False)
-    rest = fit(tmp_path, max_steps=6, resume=True, strategy="ddp", devices=1)  # Lightning rebuilds a plain loader
+    try:
+        rest = fit(tmp_path, max_steps=6, resume=True, strategy="ddp", devices=1)  # Lightning rebuilds a plain loader
+    finally:  # Lightning leaves its one-process group behind; later tests in this worker must not see it
+        if torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()
     assert len(rest) == 6 and "drawn afresh" in caplog.text
 
 
