@@ -8,7 +8,9 @@ training steps finished, the batch size, the seed and the split's size. What eac
 own (a random window inside a clip) is drawn again.
 
 "Finished" is Lightning's own count (the fit loop's processed batches): a checkpoint taken inside a step (on an
-exception) leaves that step's batch to the resumed run, as Lightning's restart does. Lightning rebuilds the train
+exception) leaves that step's batch to the resumed run, as Lightning's restart does. Where Lightning resumes an
+epoch under the next epoch's number (a last.ckpt written at train end inside an epoch), the loader follows it and keeps
+serving the orders 0, 1, 2, … (`ResumableLoader.line_up`). Lightning rebuilds the train
 loader under a parallel strategy (with a DistributedSampler, even on one process) and for `trainer.overfit_batches`
 (a sequential sampler); there `train_loader` gives a `PlainTrainLoader`, which shuffles as DataLoader does, cannot
 resume mid-epoch and says so when a resumed run lands inside an epoch. A multi-process run that must resume
