@@ -8,7 +8,8 @@ Every window of `--steps` latent steps at every start of every clip in `--latent
 clean, the rest noised at τ ∈ {0.25, 0.5, 0.75} with two fixed noise draws each (gaia_app/eval/flow_gain.py).
 Prints, per variant of the conditions, the velocity MSE and what it saves over dropping both actions and agents,
 and the action discrimination: the loss of another window's actions minus that of the window's own, with and
-without agents (± 95 % over windows). A model that steers by its actions has a discrimination interval above 0.
+without agents, and per action component (speed or curvature alone swapped) (± 95 % over windows). A model that
+steers by its actions has a discrimination interval above 0.
 """
 
 from __future__ import annotations
@@ -49,6 +50,11 @@ def main() -> None:
               f"[{gain['low']:+.5f}, {gain['high']:+.5f}]")
     for agents, d in report["action_discrimination"].items():
         print(f"  action discrimination {agents:15s} {d['mean']:+.5f} [{d['low']:+.5f}, {d['high']:+.5f}]")
+    for component, d in report["component_discrimination"].items():
+        print(f"  {component} alone swapped (agents given) {d['mean']:+.5f} [{d['low']:+.5f}, {d['high']:+.5f}]")
+        for key, label in (("by_tau", "at τ"), ("by_step", "at step")):
+            for where, e in report[f"component_discrimination_{key}"][component].items():
+                print(f"    {label} {where:5s} {e['mean']:+.5f} [{e['low']:+.5f}, {e['high']:+.5f}]")
     if args.out:
         atomic_write_text(Path(args.out), json.dumps(report, indent=2))
 

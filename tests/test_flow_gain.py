@@ -87,3 +87,37 @@ def test_report_gives_gains_and_discrimination_with_intervals(tmp_path: Path) ->
     assert report["action_discrimination"]["with agents"]["mean"] != 0  # swapped actions change the loss
     with pytest.raises(ValueError, match="two windows"):
         swapped_actions(batch_conditions(every_window(cache(tmp_path / "one", clips=1, steps=4), 4, list(META))))
+
+
+def test_one_action_component_is_swapped_at_a_time(tmp_path: Path) -> None:
+    cond = batch_conditions(every_window(cache(tmp_path / "val"), 4, list(META)))
+    both = swapped_actions(cond)
+    curvature = swapped_actions(cond, ("curvature",))
+    torch.testing.assert_close(curvature.actions[..., 0], cond.actions[..., 0])  # speed stays the window's own
+    torch.testing.assert_close(curvature.actions[..., 1], both.actions[..., 1])
+    assert not torch.equal(curvature.actions[..., 1], cond.actions[..., 1])
+    speed = swapped_actions(cond, ("speed",))
+    torch.testing.assert_close(speed.actions[..., 0], both.actions[..., 0])
+    torch.testing.assert_close(speed.actions[..., 1], cond.actions[..., 1])
+    with pytest.raises(ValueError, match="speed.*curvature.*yaw"):
+        swapped_actions(cond, ("yaw",))
+
+
+def test_report_reads_speed_and_curvature_apart(tmp_path: Path) -> None:
+    report = condition_gain_report(net(), every_window(cache(tmp_path / "val"), 4, list(META)), 0.5, context=2)
+    assert set(report["component_discrimination"]) == {"speed", "curvature"}
+    for row in report["component_discrimination"].values():
+        assert row["low"] <= row["mean"] <= row["high"] and row["n"] == 6 and row["mean"] != 0
+
+
+def test_component_discrimination_breaks_down_by_flow_time_and_step(tmp_path: Path) -> None:
+    report = condition_gain_report(net(), every_window(cache(tmp_path / "val", steps=6), 5, list(META)), 0.5,
+                                   context=2)
+    for name in ("speed", "curvature"):
+        by_tau = report["component_discrimination_by_tau"][name]
+        by_step = report["component_discrimination_by_step"][name]
+        assert list(by_tau) == ["0.25", "0.5", "0.75"] and list(by_step) == ["2", "3", "4"]
+        overall = report["component_discrimination"][name]["mean"]
+        # equal counts in every cell: the overall mean is the mean of either breakdown
+        assert sum(e["mean"] for e in by_tau.values()) / 3 == pytest.approx(overall, rel=1e-5, abs=1e-9)
+        assert sum(e["mean"] for e in by_step.values()) / 3 == pytest.approx(overall, rel=1e-5, abs=1e-9)

@@ -29,33 +29,47 @@ from gaia_app.models.gaia2.conditioning import WorldConditions, batch_conditions
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
 
 
-def swapped_actions(cond: WorldConditions) -> WorldConditions:
+ACTION_COMPONENTS = ("speed", "curvature")  # the columns of WorldConditions.actions (b, t, 2)
+
+
+def swapped_actions(cond: WorldConditions, components: Sequence[str] = ACTION_COMPONENTS) -> WorldConditions:
     """The conditions with each window's actions replaced by those of the window half the batch away (b ≥ 2): in a
-    clip-major batch (`every_window`) that is another clip, not the same clip one step later."""
+    clip-major batch (`every_window`) that is another clip, not the same clip one step later. `components` names
+    the columns swapped (the others stay the window's own), so speed and curvature can be read apart."""
     if cond.actions is None or cond.actions.shape[0] < 2:
         raise ValueError("swapping actions needs at least two windows with actions")
-    return replace(cond, actions=torch.roll(cond.actions, cond.actions.shape[0] // 2, dims=0))
+    unknown = set(components) - set(ACTION_COMPONENTS)
+    if unknown or not components:
+        raise ValueError(f"action components to swap: expected a non-empty subset of {ACTION_COMPONENTS}, "
+                         f"got {list(components)}")
+    rolled = torch.roll(cond.actions, cond.actions.shape[0] // 2, dims=0)
+    columns = torch.tensor([name in components for name in ACTION_COMPONENTS], device=cond.actions.device)
+    return replace(cond, actions=torch.where(columns, rolled, cond.actions))
 
 
 def action_variants(cond: WorldConditions) -> dict[str, WorldConditions]:
-    """The variants the diagnostic compares: actions true / swapped / dropped, with and without agents."""
+    """The variants the diagnostic compares: actions true / swapped / dropped, with and without agents, and one
+    action component swapped at a time (agents given)."""
     swapped = swapped_actions(cond)
     return {"actions and agents": cond, "swapped actions and agents": swapped, "agents only": cond.without("action"),
             "actions only": cond.without("agents"), "swapped actions only": swapped.without("agents"),
-            "neither": cond.without("action", "agents")}
+            "neither": cond.without("action", "agents"),
+            **{f"swapped {name} and agents": swapped_actions(cond, (name,)) for name in ACTION_COMPONENTS}}
 
 
 @torch.no_grad()
-def flow_losses(net: LatentWorldModel, x: torch.Tensor, variants: Mapping[str, WorldConditions], context: int,
-                taus: Sequence[float] = (0.25, 0.5, 0.75), draws: int = 2, seed: int = 0) -> dict[str, torch.Tensor]:
-    """Per window (b,) velocity MSE on steps context … t − 1 of latents x (b, v, t, C, h, w) under each variant,
-    averaged over the flow times `taus` and `draws` noise draws per time (the same noise for every variant)."""
+def flow_loss_table(net: LatentWorldModel, x: torch.Tensor, variants: Mapping[str, WorldConditions], context: int,
+                    taus: Sequence[float] = (0.25, 0.5, 0.75), draws: int = 2, seed: int = 0
+                    ) -> dict[str, torch.Tensor]:
+    """Per window, flow time and generated step (b, len(taus), t − context): the velocity MSE on steps
+    context … t − 1 of latents x (b, v, t, C, h, w) under each variant, averaged over `draws` noise draws per time
+    (the same noise for every variant)."""
     b, t = x.shape[0], x.shape[2]
     if not 0 < context < t:
         raise ValueError(f"context must leave generated steps: 0 < context < t = {t}, got {context}")
     generator = torch.Generator(device=x.device).manual_seed(seed)
-    totals = {name: torch.zeros(b, device=x.device) for name in variants}
-    for tau in taus:
+    tables = {name: torch.zeros(b, len(taus), t - context, device=x.device) for name in variants}
+    for i, tau in enumerate(taus):
         for _ in range(draws):
             noise = torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
             times = torch.full((b, t), float(tau), device=x.device)
@@ -65,8 +79,16 @@ def flow_losses(net: LatentWorldModel, x: torch.Tensor, variants: Mapping[str, W
             target = velocity_target(x, noise)
             for name, cond in variants.items():
                 error = (net(noisy, times, cond) - target)[:, :, context:].pow(2)
-                totals[name] += error.mean(dim=(1, 2, 3, 4, 5))
-    return {name: total / (len(taus) * draws) for name, total in totals.items()}
+                tables[name][:, i] += error.mean(dim=(1, 3, 4, 5)) / draws
+    return tables
+
+
+def flow_losses(net: LatentWorldModel, x: torch.Tensor, variants: Mapping[str, WorldConditions], context: int,
+                taus: Sequence[float] = (0.25, 0.5, 0.75), draws: int = 2, seed: int = 0) -> dict[str, torch.Tensor]:
+    """Per window (b,) velocity MSE on steps context … t − 1 of latents x (b, v, t, C, h, w) under each variant,
+    averaged over the flow times `taus` and `draws` noise draws per time (the same noise for every variant)."""
+    tables = flow_loss_table(net, x, variants, context, taus, draws, seed)
+    return {name: table.mean(dim=(1, 2)) for name, table in tables.items()}
 
 
 def every_window(folder: str | Path, steps: int, fields: Sequence[str]) -> dict[str, Any]:
@@ -77,18 +99,32 @@ def every_window(folder: str | Path, steps: int, fields: Sequence[str]) -> dict[
                                    for start in range(clip.mean.shape[1] - steps + 1)])
 
 
+TAUS = (0.25, 0.5, 0.75)  # the flow times scored (τ = 1 clean, 0 pure noise)
+
+
 def condition_gain_report(net: LatentWorldModel, batch: dict[str, Any], latent_scale: float, context: int
                           ) -> dict[str, Any]:
-    """Losses of `action_variants` on a latent-window batch, what each saves over "neither", and the action
-    discrimination (swapped minus own actions, with and without agents); ± 95 % intervals over windows."""
+    """Losses of `action_variants` on a latent-window batch, what each saves over "neither", the action
+    discrimination (swapped minus own actions, with and without agents) and the same per action component (only
+    that column swapped, agents given), also per flow time τ and per generated step, to say where in the sampler
+    and how far ahead each component is read; ± 95 % intervals over windows."""
     x = batch["mean"] * latent_scale
-    losses = flow_losses(net, x, action_variants(batch_conditions(batch)), context)
+    tables = flow_loss_table(net, x, action_variants(batch_conditions(batch)), context, TAUS)
+    losses = {name: table.mean(dim=(1, 2)) for name, table in tables.items()}
     report: dict[str, Any] = {"windows": int(x.shape[0]), "context": context, "losses": {}, "gain_over_neither": {},
-                              "action_discrimination": {}}
+                              "action_discrimination": {}, "component_discrimination": {},
+                              "component_discrimination_by_tau": {}, "component_discrimination_by_step": {}}
     for name, loss in losses.items():
         report["losses"][name] = float(loss.mean())
         report["gain_over_neither"][name] = asdict(mean_interval((losses["neither"] - loss).tolist()))
     for agents, (own, other) in {"with agents": ("actions and agents", "swapped actions and agents"),
                                  "without agents": ("actions only", "swapped actions only")}.items():
         report["action_discrimination"][agents] = asdict(mean_interval((losses[other] - losses[own]).tolist()))
+    for name in ACTION_COMPONENTS:
+        gap = tables[f"swapped {name} and agents"] - tables["actions and agents"]  # (b, taus, generated steps)
+        report["component_discrimination"][name] = asdict(mean_interval(gap.mean(dim=(1, 2)).tolist()))
+        report["component_discrimination_by_tau"][name] = {
+            str(tau): asdict(mean_interval(gap[:, i].mean(dim=1).tolist())) for i, tau in enumerate(TAUS)}
+        report["component_discrimination_by_step"][name] = {
+            str(context + k): asdict(mean_interval(gap[:, :, k].mean(dim=1).tolist())) for k in range(gap.shape[2])}
     return report
