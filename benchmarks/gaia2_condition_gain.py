@@ -52,9 +52,9 @@ def main() -> None:
         print(f"  action discrimination {agents:15s} {d['mean']:+.5f} [{d['low']:+.5f}, {d['high']:+.5f}]")
     for component, d in report["component_discrimination"].items():
         print(f"  {component} alone swapped (agents given) {d['mean']:+.5f} [{d['low']:+.5f}, {d['high']:+.5f}]")
-        for key, label in (("by_tau", "at τ"), ("by_step", "at step")):
+        for key, label in (("by_tau", "at τ"), ("by_step", "at step"), ("by_clip", "on")):
             for where, e in report[f"component_discrimination_{key}"][component].items():
-                print(f"    {label} {where:5s} {e['mean']:+.5f} [{e['low']:+.5f}, {e['high']:+.5f}]")
+                print(f"    {label} {where:15s} {e['mean']:+.5f} [{e['low']:+.5f}, {e['high']:+.5f}]")
     if args.out:
         atomic_write_text(Path(args.out), json.dumps(report, indent=2))
 

@@ -35,7 +35,7 @@ def cache(root: Path, clips: int = 3, steps: int = 5) -> Path:
             clip_id=f"clip_{i}", mean=rng.normal(size=(3, steps, 8, 8, 14)).astype(np.float32),
             logvar=np.full((3, steps, 8, 8, 14), -6, np.float32), temporal_downsampling=4, fps=12.5,
             image_size=(64, 112), timestamps=np.arange(frames) / 12.5, cameras=rig,
-            meta={"weather": "rain", "time_of_day": "day"},
+            meta={"weather": "rain", "time_of_day": "day", **({"open_loop": True} if i == 0 else {})},
             actions=np.tile(np.float32([5 + 3 * i, 0.02 * (i - 1)]), (frames, 1)),
             agents=[AgentBoxes([[12.0, 0.5, 0.8]], [[4.5, 1.8, 1.6]], [0.0], [0], [1]) for _ in range(frames)]))
     return root
@@ -55,6 +55,7 @@ def net() -> LatentWorldModel:
 def test_every_window_takes_every_start_of_every_clip(tmp_path: Path) -> None:
     batch = every_window(cache(tmp_path / "val"), 4, list(META))
     assert batch["mean"].shape == (3 * 2, 3, 4, 8, 8, 14)  # 5 steps → starts 0 and 1, three clips
+    assert batch["open_loop"].tolist() == [True, True, False, False, False, False]  # clip 0 leaves its policy
     with pytest.raises(ClipError, match="no finished clip folders"):
         every_window(tmp_path / "empty", 4, list(META))
 
@@ -121,3 +122,13 @@ def test_component_discrimination_breaks_down_by_flow_time_and_step(tmp_path: Pa
         # equal counts in every cell: the overall mean is the mean of either breakdown
         assert sum(e["mean"] for e in by_tau.values()) / 3 == pytest.approx(overall, rel=1e-5, abs=1e-9)
         assert sum(e["mean"] for e in by_step.values()) / 3 == pytest.approx(overall, rel=1e-5, abs=1e-9)
+
+
+def test_component_discrimination_splits_open_loop_from_policy_windows(tmp_path: Path) -> None:
+    report = condition_gain_report(net(), every_window(cache(tmp_path / "val"), 4, list(META)), 0.5, context=2)
+    for name in ("speed", "curvature"):
+        kinds = report["component_discrimination_by_clip"][name]
+        assert kinds["open-loop clips"]["n"] == 2 and kinds["policy clips"]["n"] == 4
+        overall = report["component_discrimination"][name]["mean"]
+        pooled = (2 * kinds["open-loop clips"]["mean"] + 4 * kinds["policy clips"]["mean"]) / 6
+        assert pooled == pytest.approx(overall, rel=1e-5, abs=1e-9)

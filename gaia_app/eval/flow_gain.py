@@ -92,11 +92,14 @@ def flow_losses(net: LatentWorldModel, x: torch.Tensor, variants: Mapping[str, W
 
 
 def every_window(folder: str | Path, steps: int, fields: Sequence[str]) -> dict[str, Any]:
-    """One batch of every `steps`-step window at every start of every clip of a latent cache split `folder`."""
+    """One batch of every `steps`-step window at every start of every clip of a latent cache split `folder`, with
+    "open_loop" (b,) bool: the window's clip leaves its policy for a random command (meta.open_loop)."""
     encoder = MetadataEncoder(list(fields))
     clips = [read_latent_clip(path) for path in find_latent_clips(folder)]  # none: a ClipError naming the folder
-    return collate_latent_windows([latent_window(clip, start, steps, encoder) for clip in clips
-                                   for start in range(clip.mean.shape[1] - steps + 1)])
+    starts = [(clip, start) for clip in clips for start in range(clip.mean.shape[1] - steps + 1)]
+    batch = collate_latent_windows([latent_window(clip, start, steps, encoder) for clip, start in starts])
+    batch["open_loop"] = torch.tensor([bool(clip.meta.get("open_loop", False)) for clip, _ in starts])
+    return batch
 
 
 TAUS = (0.25, 0.5, 0.75)  # the flow times scored (τ = 1 clean, 0 pure noise)
@@ -106,14 +109,16 @@ def condition_gain_report(net: LatentWorldModel, batch: dict[str, Any], latent_s
                           ) -> dict[str, Any]:
     """Losses of `action_variants` on a latent-window batch, what each saves over "neither", the action
     discrimination (swapped minus own actions, with and without agents) and the same per action component (only
-    that column swapped, agents given), also per flow time τ and per generated step, to say where in the sampler
-    and how far ahead each component is read; ± 95 % intervals over windows."""
+    that column swapped, agents given), also per flow time τ, per generated step and per kind of clip (open-loop or
+    policy; `every_window`'s "open_loop"), to say where in the sampler, how far ahead and on which windows each
+    component is read; ± 95 % intervals over windows."""
     x = batch["mean"] * latent_scale
     tables = flow_loss_table(net, x, action_variants(batch_conditions(batch)), context, TAUS)
     losses = {name: table.mean(dim=(1, 2)) for name, table in tables.items()}
     report: dict[str, Any] = {"windows": int(x.shape[0]), "context": context, "losses": {}, "gain_over_neither": {},
                               "action_discrimination": {}, "component_discrimination": {},
-                              "component_discrimination_by_tau": {}, "component_discrimination_by_step": {}}
+                              "component_discrimination_by_tau": {}, "component_discrimination_by_step": {},
+                              "component_discrimination_by_clip": {}}
     for name, loss in losses.items():
         report["losses"][name] = float(loss.mean())
         report["gain_over_neither"][name] = asdict(mean_interval((losses["neither"] - loss).tolist()))
@@ -127,4 +132,16 @@ def condition_gain_report(net: LatentWorldModel, batch: dict[str, Any], latent_s
             str(tau): asdict(mean_interval(gap[:, i].mean(dim=1).tolist())) for i, tau in enumerate(TAUS)}
         report["component_discrimination_by_step"][name] = {
             str(context + k): asdict(mean_interval(gap[:, :, k].mean(dim=1).tolist())) for k in range(gap.shape[2])}
+        report["component_discrimination_by_clip"][name] = clip_kind_intervals(gap.mean(dim=(1, 2)),
+                                                                               batch.get("open_loop"))
     return report
+
+
+def clip_kind_intervals(values: torch.Tensor, open_loop: torch.Tensor | None) -> dict[str, Any]:
+    """Per-window values (b,) averaged over the windows of open-loop clips and of policy clips apart (a kind with no
+    window is left out): a model that reads a command as a cause shows it on the open-loop clips, where the
+    context frames do not give the command away."""
+    if open_loop is None:
+        return {}
+    kinds = {"open-loop clips": open_loop, "policy clips": ~open_loop}
+    return {kind: asdict(mean_interval(values[mask].tolist())) for kind, mask in kinds.items() if bool(mask.any())}
