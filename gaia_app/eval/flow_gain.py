@@ -28,7 +28,6 @@ from gaia_app.eval.intervals import mean_interval
 from gaia_app.models.gaia2.conditioning import WorldConditions, batch_conditions
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
 
-
 ACTION_COMPONENTS = ("speed", "curvature")  # the columns of WorldConditions.actions (b, t, 2)
 
 
