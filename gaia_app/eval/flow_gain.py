@@ -29,6 +29,7 @@ from gaia_app.models.gaia2.conditioning import WorldConditions, batch_conditions
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
 
 ACTION_COMPONENTS = ("speed", "curvature")  # the columns of WorldConditions.actions (b, t, 2)
+TAUS = (0.25, 0.5, 0.75)  # the flow times scored (τ = 1 clean, 0 pure noise)
 
 
 def swapped_actions(cond: WorldConditions, components: Sequence[str] = ACTION_COMPONENTS) -> WorldConditions:
@@ -58,7 +59,7 @@ def action_variants(cond: WorldConditions) -> dict[str, WorldConditions]:
 
 @torch.no_grad()
 def flow_loss_table(net: LatentWorldModel, x: torch.Tensor, variants: Mapping[str, WorldConditions], context: int,
-                    taus: Sequence[float] = (0.25, 0.5, 0.75), draws: int = 2, seed: int = 0
+                    taus: Sequence[float] = TAUS, draws: int = 2, seed: int = 0
                     ) -> dict[str, torch.Tensor]:
     """Per window, flow time and generated step (b, len(taus), t − context): the velocity MSE on steps
     context … t − 1 of latents x (b, v, t, C, h, w) under each variant, averaged over `draws` noise draws per time
@@ -83,7 +84,7 @@ def flow_loss_table(net: LatentWorldModel, x: torch.Tensor, variants: Mapping[st
 
 
 def flow_losses(net: LatentWorldModel, x: torch.Tensor, variants: Mapping[str, WorldConditions], context: int,
-                taus: Sequence[float] = (0.25, 0.5, 0.75), draws: int = 2, seed: int = 0) -> dict[str, torch.Tensor]:
+                taus: Sequence[float] = TAUS, draws: int = 2, seed: int = 0) -> dict[str, torch.Tensor]:
     """Per window (b,) velocity MSE on steps context … t − 1 of latents x (b, v, t, C, h, w) under each variant,
     averaged over the flow times `taus` and `draws` noise draws per time (the same noise for every variant)."""
     tables = flow_loss_table(net, x, variants, context, taus, draws, seed)
@@ -99,9 +100,6 @@ def every_window(folder: str | Path, steps: int, fields: Sequence[str]) -> dict[
     batch = collate_latent_windows([latent_window(clip, start, steps, encoder) for clip, start in starts])
     batch["open_loop"] = torch.tensor([bool(clip.meta.get("open_loop", False)) for clip, _ in starts])
     return batch
-
-
-TAUS = (0.25, 0.5, 0.75)  # the flow times scored (τ = 1 clean, 0 pure noise)
 
 
 def condition_gain_report(net: LatentWorldModel, batch: dict[str, Any], latent_scale: float, context: int
