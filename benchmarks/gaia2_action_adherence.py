@@ -16,6 +16,10 @@ once and shared by every variant. Everything after `--` is a Hydra override of g
 `--tables fidelity` gives (or `--tables actions fidelity` adds) the evaluation's fidelity table for each variant
 (its rollouts under the scenes' own actions against the real continuations: what a guidance scale costs in PSNR,
 SSIM and motion statistics, FVMD).
+
+The action probe is trained once per run (about half its time on a CPU) and saved to `--out`/action_probe; `--probe
+<that folder>` loads it in a later run instead (protocols/gaia2_action_probe.py: it must read the same rig, size,
+rate, cameras and stride, and come from another world than the one scored).
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from gaia_app.pipelines.gaia2_edits import cut_steps
 from gaia_app.protocols import gaia2_actions
 from gaia_app.protocols.controllability import CONTRASTS
 from gaia_app.protocols.fidelity import check_metrics
+from gaia_app.protocols.gaia2_action_probe import action_probe
 from gaia_app.protocols.gaia2_evaluate import fidelity_table, rig_samples
 from gaia_app.protocols.loading import load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
@@ -77,12 +82,12 @@ TABLES = ("actions", "fidelity")
 
 def adherence(folders: list[str], overrides: list[str], scales: list[float] | None = None,
               tables: tuple[str, ...] = ("actions",),
-              intervals: list[tuple[float, float]] | None = None) -> dict[str, Any]:
+              intervals: list[tuple[float, float]] | None = None, probe_to: Path | None = None) -> dict[str, Any]:
     """For each weights folder (× each guidance scale of `scales` × each guidance interval of `intervals`) on one set
     of scenes: {"tables": {name: action
-    table}} with "probe_fit" (one probe for all) when `tables` has "actions", and {"fidelity": {name: the
-    evaluation's fidelity table}} when it has "fidelity" (what the guidance costs in PSNR / SSIM / FVMD;
-    `evaluate.metrics` without agent_iou)."""
+    table}} with "probe_fit" (one probe for all: its info and fit, gaia2_action_probe.action_probe) when `tables` has
+    "actions", and {"fidelity": {name: the evaluation's fidelity table}} when it has "fidelity" (what the guidance
+    costs in PSNR / SSIM / FVMD; `evaluate.metrics` without agent_iou). A trained probe is saved to `probe_to`."""
     GlobalHydra.instance().clear()  # a caller's Hydra (tests compose many configs) must not block this one
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("generate", ["model=gaia2", "data=synthetic_rig", "mode=evaluate", f"weights={folders[0]}",
@@ -104,7 +109,7 @@ def adherence(folders: list[str], overrides: list[str], scales: list[float] | No
     # (a bad folder or interval fails here, before any probe or rollout)
     frames = cfg.model.steps * next(iter(pipelines.values())).temporal
     started = time.perf_counter()
-    probe, fit = gaia2_actions.train_action_probe(cfg, frames) if "actions" in tables else (None, None)
+    probe, fit = action_probe(cfg, frames, probe_to) if "actions" in tables else (None, None)
     samples = rig_samples(cfg, cfg.context.seed, cfg.model.evaluate.contexts, frames)
     actions, fidelities, ceilings = {}, {}, {}  # the real continuations are rendered once for every variant
     for name, pipeline in pipelines.items():
@@ -168,10 +173,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="guidance intervals lo,hi (flow time), each replacing model.guidance.interval")
     parser.add_argument("--tables", nargs="+", choices=TABLES, default=["actions"],
                         help="actions (default) and/or fidelity: the evaluation's fidelity table per variant")
-    parser.add_argument("--out", type=Path, help="folder for action_adherence.{json,md}")
+    parser.add_argument("--out", type=Path, help="folder for action_adherence.{json,md} and the trained action_probe/")
+    parser.add_argument("--probe", type=Path, help="an earlier run's action_probe folder, loaded instead of training")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of generate.yaml (after --)")
     args = parser.parse_args(argv)
-    result = adherence(args.weights, args.overrides, args.scales, tuple(args.tables), args.intervals)
+    overrides = [*args.overrides, *([f"model.evaluate.action_probe={args.probe}"] if args.probe else [])]
+    result = adherence(args.weights, overrides, args.scales, tuple(args.tables), args.intervals,
+                       args.out / "action_probe" if args.out else None)
     table = markdown(result)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)

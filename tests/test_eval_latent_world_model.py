@@ -102,7 +102,7 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
     from hydra.errors import InstantiationException
     from safetensors.torch import load_file, save_file
 
-    from gaia_app.protocols import gaia2_actions
+    from gaia_app.protocols import gaia2_action_probe, gaia2_actions
     from gaia_app.weights.folders import shipped_folder
 
     module = load_benchmark("gaia2_action_adherence")
@@ -145,6 +145,14 @@ def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_pr
             != fidelity["gaia2, guidance ×0"]["rows"]["model (rollouts)"])
     assert table.count("| gaia2, guidance ×") == 2 and "| held frame (floor) |" in table and "fvmd ↓" in table
     assert table.count("paired by scene") == 3 and "speed contrast +0.000 [" in table  # the copy's ×0 table: no change
+    # the probe the run trained is saved with it; a later run loads it instead of training one, and reads the same
+    saved = tmp_path / "out" / "action_probe"
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(gaia2_action_probe, "train_action_probe", lambda *a: pytest.fail("trained a second probe"))
+        reloaded = module.main(["--weights", "gaia2", "--probe", str(saved), "--", "model.evaluate.contexts=1",
+                                "model.sampler.steps=2", "model.guidance.conditions=[action]", "model.steps=3"])
+    assert reloaded["probe_fit"]["loaded_from"] == str(saved)
+    assert reloaded["tables"]["gaia2"]["rows"]["ceiling"] == original["rows"]["ceiling"]
     with pytest.raises(ValueError, match="probe_stride=5"):
         module.main(["--weights", "gaia2", "--", "model.evaluate.probe_stride=5"])
     alone = module.main(["--weights", "gaia2", str(other), "--tables", "fidelity", "--", "evaluate.metrics=[psnr]",

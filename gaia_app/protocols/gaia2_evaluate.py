@@ -61,6 +61,7 @@ from gaia_app.pipelines.gaia2_edits import cut_steps
 from gaia_app.pipelines.gaia2_world_model import Guidance
 from gaia_app.protocols import gaia2_actions
 from gaia_app.protocols.fidelity import check_metrics, feature_metrics, held_frame, score
+from gaia_app.protocols.gaia2_action_probe import action_probe
 from gaia_app.protocols.loading import load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
 
@@ -102,12 +103,15 @@ def train_segmentation_probe(cfg: DictConfig, frames: int) -> tuple[Any, dict[st
     return train_agent_probe(images, masks, steps=e.probe_steps, seed=cfg.seed)
 
 
-def train_probes_for(cfg: DictConfig, frames: int) -> tuple[Any, Any, dict[str, Any]]:
+def train_probes_for(cfg: DictConfig, frames: int, run_dir: Path | None = None) -> tuple[Any, Any, dict[str, Any]]:
     """The agent segmentation probe (train_segmentation_probe) and the inverse-dynamics probe (the front camera or
-    the rig, gaia2_actions.train_action_probe)."""
+    the rig: `model.evaluate.action_probe` loaded, or trained and saved to `run_dir`/action_probe;
+    protocols/gaia2_action_probe.py)."""
     segmentation, agent_fit = train_segmentation_probe(cfg, frames)
-    dynamics, action_fit = gaia2_actions.train_action_probe(cfg, frames)
-    return segmentation, dynamics, {"agent_probe": agent_fit, "action_probe": action_fit}
+    dynamics, action_info = action_probe(cfg, frames, None if run_dir is None else run_dir / "action_probe")
+    return segmentation, dynamics, {"agent_probe": agent_fit, "action_probe": action_info.get("fit"),
+                                    **({"action_probe_from": action_info["loaded_from"]}
+                                       if "loaded_from" in action_info else {})}
 
 
 def scene_overlaps(predicted: list[torch.Tensor], masks: list[torch.Tensor],
@@ -354,7 +358,7 @@ def gaia2_evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     gaia2_actions.probe_mirror(cfg)
     pipeline = load_gaia2(cfg)
     frames = cfg.model.steps * pipeline.temporal
-    segmentation, dynamics, fit = train_probes_for(cfg, frames)
+    segmentation, dynamics, fit = train_probes_for(cfg, frames, run_dir)
     scenes = [(s, cut_steps(pipeline.encode(s.clip), cfg.model.steps))
               for s in rig_samples(cfg, cfg.context.seed, e.contexts, frames)]
     generator = torch.Generator().manual_seed(int(cfg.seed))

@@ -1,0 +1,95 @@
+"""The GAIA-2 action table's inverse-dynamics probe, trained once and reused (protocols/gaia2_actions.py).
+
+Training the rig probe takes about half of an action table's time on a CPU (1 500 steps on 96 clips: 30 of 67
+minutes), and it depends on neither the weights nor the scenes scored. `model.evaluate.action_probe=<folder>` loads
+the probe a run saved (`<run dir>/action_probe`, or `--out`/action_probe of benchmarks/gaia2_action_adherence.py)
+instead of training it; the folder holds `action_probe.safetensors` (weights only) and `action_probe.yaml` (what it
+was trained on). A probe is reused only where it reads the same thing: the same rig, image size, rate, cameras read
+and frame stride, trained on a world other than the one scored.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+from omegaconf import DictConfig
+
+from gaia_app.data.synthetic.rig import resolve_camera_names
+from gaia_app.models.probes import InverseDynamicsProbe
+from gaia_app.protocols.gaia2_actions import probe_stride, probe_views, train_action_probe
+from gaia_app.utils.run_dir import atomic_write_bytes, atomic_write_text
+
+WEIGHTS, INFO = "action_probe.safetensors", "action_probe.yaml"
+# what a saved probe must share with the run that loads it: otherwise it reads other pictures
+MUST_MATCH = ("cameras", "probe_cameras", "image_size", "rate", "probe_stride")
+
+
+def probe_info(cfg: DictConfig, frames: int) -> dict[str, Any]:
+    """What `train_action_probe(cfg, frames)` trains on and reads: the rig's cameras, image size (H, W) and rate, the
+    cameras the probe reads, its frame stride, and the probe world's settings."""
+    e, source = cfg.model.evaluate, cfg.data.source
+    return {"cameras": resolve_camera_names(source.cameras), "probe_cameras": str(e.probe_cameras),
+            "image_size": [int(source.height), int(source.width)], "rate": float(source.fps),
+            "probe_stride": probe_stride(cfg), "frames": int(frames), "probe_seed": int(e.probe_seed),
+            "probe_clips": int(e.probe_clips), "probe_steps": int(e.probe_steps),
+            "probe_driven_share": float(e.probe_driven_share), "seed": int(cfg.seed)}
+
+
+def save_action_probe(folder: str | Path, probe: InverseDynamicsProbe, info: dict[str, Any]) -> None:
+    """Write `probe` and `info` (probe_info plus its fit) into `folder`, each file atomically."""
+    from safetensors.torch import save as save_tensors
+
+    folder = Path(folder)
+    state = {key: value.contiguous() for key, value in probe.state_dict().items()}
+    atomic_write_bytes(folder / WEIGHTS, save_tensors(state))
+    atomic_write_text(folder / INFO, yaml.safe_dump(info, sort_keys=False))
+
+
+def load_action_probe(folder: str | Path, cfg: DictConfig, frames: int) -> tuple[InverseDynamicsProbe, dict[str, Any]]:
+    """The probe saved in `folder` and its info; FileNotFoundError or ValueError naming the file and the setting that
+    does not fit this run (MUST_MATCH, or a probe trained on the world this run scores)."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    folder = Path(folder)
+    for path in (folder / WEIGHTS, folder / INFO):
+        if not path.is_file():
+            raise FileNotFoundError(f"model.evaluate.action_probe={folder}: {path.name} is missing (leave it null to "
+                                    "train the probe; a run saves it as action_probe/)")
+    saved = yaml.safe_load((folder / INFO).read_text()) or {}
+    wanted = probe_info(cfg, frames)
+    for key in MUST_MATCH:
+        if saved.get(key) != wanted[key]:
+            raise ValueError(f"{folder / INFO}: the probe was trained for {key}={saved.get(key)!r}, this run needs "
+                             f"{wanted[key]!r}")
+    if saved.get("probe_seed") == int(cfg.context.seed):
+        raise ValueError(f"{folder / INFO}: the probe was trained on world {saved['probe_seed']}, the world this run "
+                         f"scores (context.seed); use a probe of another world")
+    try:
+        state = load_file(str(folder / WEIGHTS))
+    except (SafetensorError, OSError) as error:
+        raise ValueError(f"{folder / WEIGHTS}: not a readable safetensors file ({error})") from error
+    views = probe_views(cfg)
+    probe = InverseDynamicsProbe(cameras=len(views) if views else 1)
+    try:
+        probe.load_state_dict(state)
+    except RuntimeError as error:
+        raise ValueError(f"{folder / WEIGHTS}: does not match this version's action probe ({error})") from error
+    return probe.eval(), saved
+
+
+def action_probe(cfg: DictConfig, frames: int,
+                 save_to: str | Path | None = None) -> tuple[InverseDynamicsProbe, dict[str, Any]]:
+    """The action probe and its info (with "fit" and "loaded_from" where it was loaded): `model.evaluate.action_probe`
+    loaded, or trained and, with `save_to`, saved there for later runs."""
+    folder = cfg.model.evaluate.get("action_probe")
+    if folder:
+        probe, info = load_action_probe(folder, cfg, frames)
+        return probe, {**info, "loaded_from": str(folder)}
+    probe, fit = train_action_probe(cfg, frames)
+    info = {**probe_info(cfg, frames), "fit": fit}
+    if save_to is not None:
+        save_action_probe(save_to, probe, info)
+    return probe, info
