@@ -4,6 +4,13 @@ Legend: v cameras, t latent steps per window, τ frames per step, C h w latent c
 
 Per-frame labels become per-step ones: actions are averaged over the τ frames of a step, the timestamp
 and agents are those of the step's first frame, the caption that of its middle frame.
+
+Training windows start uniformly in their clip (`window_sampling="uniform"`, the report's protocol as far as it says),
+or where the ego's action changes (`"action_change"`, ours): a start is drawn with probability proportional to how far
+the mean action of the window's steps after `change_after` differs from that of the steps before it, each component
+in units of its spread over the training cache. A command's onset is rare in driving logs (in the synthetic world
+an open-loop switch falls in the generated half of about a sixth of the windows), yet it is what a rollout asked to
+turn or brake must produce from a context that does not (docs/paper_faithful.md, "Where the GAIA-2 curvature goes").
 """
 
 from __future__ import annotations
@@ -23,27 +30,74 @@ from gaia_app.data.latent_cache import LatentClip, find_latent_clips, read_laten
 from gaia_app.data.metadata import MetadataEncoder
 from gaia_app.data.resumable import train_loader
 
+WINDOW_SAMPLING = ("uniform", "action_change")
+
 
 class LatentWindows(Dataset):
-    """Item: `steps` consecutive latent steps of one cached clip (random start when `random_window`).
+    """Item: `steps` consecutive latent steps of one cached clip (random start when `random_window`, drawn as
+    `window_sampling` says; the module docstring). `change_after`: the latent steps before the action change that
+    "action_change" looks for (a rollout's context steps), in [1, steps − 1].
 
     Returns {"mean", "logvar": (v, t, C, h, w), "timestamps": (t,), "actions"?: (t, 2), "agents"?: t AgentBoxes,
     "text"?: str, "intrinsics"/"extrinsics"?: (v, 3, 3)/(v, 4, 4), "image_size": (H, W), "metadata": {field: int},
     "clip_id"}. Absent labels stay absent.
     """
 
-    def __init__(self, folders: Sequence[Path], steps: int, metadata: MetadataEncoder, random_window: bool = True):
+    def __init__(self, folders: Sequence[Path], steps: int, metadata: MetadataEncoder, random_window: bool = True,
+                 window_sampling: str = "uniform", change_after: int = 2):
         self.clips: list[LatentClip] = [read_latent_clip(f) for f in folders]
         short = [c.clip_id for c in self.clips if c.mean.shape[1] < steps]
         if short:
             raise ClipError(f"latent clips {short[:5]} have fewer than steps={steps} latent steps")
+        if window_sampling not in WINDOW_SAMPLING:
+            raise ValueError(f"window_sampling={window_sampling!r}: expected one of {WINDOW_SAMPLING}")
         self.steps, self.metadata, self.random_window = steps, metadata, random_window
+        self.start_weights: list[torch.Tensor] | None = None
+        if window_sampling == "action_change" and random_window:
+            self.start_weights = action_change_weights(self.clips, steps, change_after)
 
     def __len__(self) -> int:
         return len(self.clips)
 
     def __getitem__(self, index: int) -> dict[str, Any]:
-        return random_latent_window(self.clips[index], self.steps, self.metadata, self.random_window)
+        clip = self.clips[index]
+        if self.start_weights is None:
+            return random_latent_window(clip, self.steps, self.metadata, self.random_window)
+        start = int(torch.multinomial(self.start_weights[index], 1).item())
+        return latent_window(clip, start, self.steps, self.metadata)
+
+
+def step_actions(clip: LatentClip) -> np.ndarray:
+    """(t, 2) per latent step: the clip's per-frame actions averaged over each step's τ frames (as `latent_window`)."""
+    tau = clip.temporal_downsampling
+    return clip.actions.reshape(-1, tau, 2).mean(1)
+
+
+def action_changes(actions: np.ndarray, steps: int, change_after: int, spread: np.ndarray) -> np.ndarray:
+    """actions (t, 2) per latent step → (t − steps + 1,) per window start: the L1 distance between the mean action of
+    the window's steps from `change_after` on and that of its steps before, each component divided by `spread`."""
+    windows = np.lib.stride_tricks.sliding_window_view(actions, steps, axis=0)  # (starts, 2, steps)
+    before, after = windows[..., :change_after].mean(-1), windows[..., change_after:].mean(-1)
+    return (np.abs(after - before) / spread).sum(-1)
+
+
+def action_change_weights(clips: Sequence[LatentClip], steps: int, change_after: int) -> list[torch.Tensor]:
+    """Per clip, (starts,) probabilities of its window starts ∝ `action_changes` (the module docstring); a clip
+    whose action never changes gets uniform starts. ClipError naming a clip without actions."""
+    if not 1 <= change_after < steps:
+        raise ValueError(f"change_after={change_after}: expected a number of latent steps in [1, steps − 1 = "
+                         f"{steps - 1}]")
+    missing = [c.clip_id for c in clips if c.actions is None]
+    if missing:
+        raise ClipError(f"window_sampling=action_change needs actions; latent clips {missing[:5]} have none")
+    per_step = [step_actions(c) for c in clips]
+    spread = np.concatenate(per_step).std(0) + 1e-6  # each component in units of its spread over the cache
+    weights = []
+    for actions in per_step:
+        change = action_changes(actions, steps, change_after, spread).astype(np.float64)
+        total = change.sum()
+        weights.append(torch.from_numpy(change / total if total > 0 else np.full_like(change, 1 / len(change))))
+    return weights
 
 
 def random_latent_window(clip: LatentClip, steps: int, metadata: MetadataEncoder,
@@ -105,20 +159,24 @@ class LatentCacheDataModule(L.LightningDataModule):
         path: the cache root (out_dir of mode=encode).
         steps: latent steps per window. metadata_fields: the model's metadata fields (MetadataEncoder).
         batch_size, num_workers: loader settings.
+        window_sampling, change_after: how training windows start (`LatentWindows`; validation windows start at
+            their clip's start).
     """
 
     def __init__(self, path: str, steps: int = 4, metadata_fields: Sequence[str] = (), batch_size: int = 4,
-                 num_workers: int = 0):
+                 num_workers: int = 0, window_sampling: str = "uniform", change_after: int = 2):
         super().__init__()
         self.path, self.steps, self.metadata_fields = Path(path), steps, list(metadata_fields)
         self.batch_size, self.num_workers = batch_size, num_workers
+        self.window_sampling, self.change_after = window_sampling, change_after
         self.train_set: LatentWindows | None = None
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:
             return
         encoder = MetadataEncoder(self.metadata_fields)
-        self.train_set = LatentWindows(find_latent_clips(self.path / "train"), self.steps, encoder, random_window=True)
+        self.train_set = LatentWindows(find_latent_clips(self.path / "train"), self.steps, encoder, random_window=True,
+                                       window_sampling=self.window_sampling, change_after=self.change_after)
         self.val_set = LatentWindows(find_latent_clips(self.path / "val"), self.steps, encoder, random_window=False)
 
     def train_dataloader(self) -> DataLoader:

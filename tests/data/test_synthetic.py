@@ -116,7 +116,8 @@ def test_speed_and_curvature_are_diverse() -> None:
 
 
 def test_open_loop_clips_switch_to_a_constant_command_in_the_same_scene() -> None:
-    """driven_share: the chosen clips keep their scene and their policy's first quarter, then hold one command."""
+    """driven_share: the chosen clips keep their scene and their policy's first quarter, then hold one command from
+    the moment meta.command_start_s says."""
     driven = SyntheticClipDataset(num_clips=8, seed=5, height=16, width=16, clip_len=24, driven_share=0.5)
     policy = SyntheticClipDataset(num_clips=8, seed=5, height=16, width=16, clip_len=24)
     flags = [bool(driven[i].meta.get("open_loop")) for i in range(8)]
@@ -130,8 +131,13 @@ def test_open_loop_clips_switch_to_a_constant_command_in_the_same_scene() -> Non
             assert ((np.ptp(curvature) == 0 and np.allclose(np.diff(speed), np.diff(speed)[0], atol=1e-4))
                     or speed.min() == 0)
             assert not np.array_equal(mine.actions, theirs.actions)
+            # meta.command_start_s: the first frame that leaves the policy
+            start = round(mine.meta["command_start_s"] * 25.0)
+            np.testing.assert_array_equal(mine.actions[:start], theirs.actions[:start])
+            assert not np.array_equal(mine.actions[start], theirs.actions[start])
         else:
             np.testing.assert_array_equal(mine.actions, theirs.actions)
+            assert "command_start_s" not in mine.meta
     with pytest.raises(ValueError, match="driven_share"):
         SyntheticClipDataset(num_clips=1, driven_share=1.5)
 

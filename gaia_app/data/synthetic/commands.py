@@ -48,10 +48,16 @@ def open_loop_actions(rng: np.random.Generator, policy: np.ndarray, fps: float,
                       acceleration_range: tuple[float, float] = ACCELERATION_RANGE) -> np.ndarray:
     """(t, 2) actions: the policy's (t, 2) until a random frame in the middle half of the clip, then a random command
     (acceleration uniform in `acceleration_range`)."""
+    return open_loop_command(rng, policy, fps, acceleration_range)[0]
+
+
+def open_loop_command(rng: np.random.Generator, policy: np.ndarray, fps: float,
+                      acceleration_range: tuple[float, float] = ACCELERATION_RANGE) -> tuple[np.ndarray, int]:
+    """`open_loop_actions` and the frame at which its command starts (the first frame not the policy's)."""
     t = len(policy)
     if t < 4:
         raise ValueError(f"open-loop commands need clips of at least 4 frames, got {t}")
     switch = int(rng.integers(t // 4, max(t // 4 + 1, 3 * t // 4)))
     acceleration, curvature = draw_command(rng, acceleration_range)
     tail = command_profile(float(policy[max(switch - 1, 0), 0]), acceleration, curvature, t - switch, 1.0 / fps)
-    return np.concatenate([policy[:switch], tail]).astype(np.float64)
+    return np.concatenate([policy[:switch], tail]).astype(np.float64), switch

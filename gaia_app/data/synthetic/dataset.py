@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from gaia_app.data.clip import Clip
-from gaia_app.data.synthetic.commands import ACCELERATION_RANGE, check_acceleration_range, open_loop_actions
+from gaia_app.data.synthetic.commands import ACCELERATION_RANGE, check_acceleration_range, open_loop_command
 from gaia_app.data.synthetic.generate import SyntheticSample, WorldConfig, clip_meta, sample_from_rng
 from gaia_app.data.synthetic.labels import frame_meta
 from gaia_app.data.synthetic.planning import ScenePlan, make_plan
@@ -33,7 +33,8 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
 
     driven_share: share of clips whose ego leaves its policy in the middle half of the clip for a random constant
         acceleration and curvature (gaia_app/data/synthetic/commands.py): actions the frames do not give away,
-        which a world model needs to learn what a command does. Such clips have meta["open_loop"] = True.
+        which a world model needs to learn what a command does. Such clips have meta["open_loop"] = True and
+        meta["command_start_s"]: the time (s from the clip's start) of the first frame the command drives.
     open_loop_acceleration: (low, high) m/s² of the open-loop commands' constant acceleration (uniform).
     render_rate: render only the frames that resampling to this rate (Hz) keeps; the simulation and the labels still
         run at `fps`, so a clip equals the full clip resampled to `render_rate` (for consumers that resample anyway:
@@ -84,8 +85,10 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
         if i in self.cached:
             self.cached.move_to_end(i)
             return self.cached[i]
-        scenario = self.open_loop_scenario(i)
-        meta = {"seed": self.seed, "index": i, **({"open_loop": True} if scenario is not self.scenario else {})}
+        command = self.open_loop_command(i)
+        scenario = self.scenario if command is None else replace(self.scenario or Scenario(), ego_actions=command[0])
+        meta = {"seed": self.seed, "index": i,
+                **({"open_loop": True, "command_start_s": command[1] / self.config.fps} if command else {})}
         sample = sample_from_rng(rng, self.config, scenario, f"synthetic-s{self.seed}-{i:06d}", meta,
                                  self.render_rate)
         if self.cache_clips:
@@ -94,15 +97,15 @@ class SyntheticClipDataset(torch.utils.data.Dataset):
                 self.cached.popitem(last=False)
         return sample
 
-    def open_loop_scenario(self, index: int) -> Scenario | None:
-        """The dataset's scenario, with open-loop ego actions for the `driven_share` of clips that get them."""
+    def open_loop_command(self, index: int) -> tuple[np.ndarray, int] | None:
+        """For the `driven_share` of clips that leave their policy: their (t, 2) ego actions and the frame at which
+        the command starts (commands.open_loop_command); None for the others."""
         if self.driven_share <= 0:
-            return self.scenario
+            return None
         choice = np.random.default_rng([self.seed, index, OPEN_LOOP_STREAM])
         if choice.random() >= self.driven_share:
-            return self.scenario
-        actions = open_loop_actions(choice, self.simulated_actions(index), self.config.fps, self.open_loop_acceleration)
-        return replace(self.scenario or Scenario(), ego_actions=actions)
+            return None
+        return open_loop_command(choice, self.simulated_actions(index), self.config.fps, self.open_loop_acceleration)
 
     def __getitem__(self, index: int) -> Clip:
         return self.sample(index).clip

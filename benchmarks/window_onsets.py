@@ -1,0 +1,96 @@
+r"""How often a training window of a latent cache holds a command's onset in the steps a rollout generates, under each
+way of drawing windows (`data.window_sampling`, gaia_app/data/latent_windows.py). Exact expectations from the
+samplers' start probabilities, no draws.
+
+A synthetic clip that leaves its policy (meta.open_loop) records when its command starts (meta.command_start_s). A
+window of `steps` latent steps starting at step s "holds the onset" when that frame lies in its steps from
+`change_after` on, the steps a rollout with `change_after` context steps generates: the futures that must start a
+turn or a brake the context does not show.
+
+    python benchmarks/window_onsets.py --cache outputs/road_users/latents_s4 --steps 4 --change-after 2 --out onsets
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gaia_app.data.clip import ClipError
+from gaia_app.data.latent_cache import LatentClip, find_latent_clips
+from gaia_app.data.latent_windows import WINDOW_SAMPLING, LatentWindows
+from gaia_app.data.metadata import MetadataEncoder
+from gaia_app.utils.run_dir import atomic_write_text
+
+
+def onset_step_mask(clip: LatentClip, steps: int, change_after: int) -> np.ndarray | None:
+    """(starts,) bool per window start: its generated steps hold the clip's command onset; None for a policy clip.
+    ClipError naming an open-loop clip without meta.command_start_s."""
+    if not clip.meta.get("open_loop"):
+        return None
+    if "command_start_s" not in clip.meta:
+        raise ClipError(f"latent clip '{clip.clip_id}': meta.open_loop without meta.command_start_s (encode the cache "
+                        "again: the synthetic world records when its command starts)")
+    onset = int(np.searchsorted(clip.timestamps, float(clip.meta["command_start_s"]) - 1e-6))
+    tau, starts = clip.temporal_downsampling, np.arange(clip.mean.shape[1] - steps + 1)
+    return ((starts + change_after) * tau <= onset) & (onset < (starts + steps) * tau)
+
+
+def onset_shares(folders: list[Path], steps: int, change_after: int) -> dict[str, Any]:
+    """{sampling: {"all windows": share, "open-loop clips' windows": share}} plus the clip counts."""
+    shares: dict[str, Any] = {}
+    for sampling in WINDOW_SAMPLING:
+        windows = LatentWindows(folders, steps, MetadataEncoder([]), window_sampling=sampling,
+                                change_after=change_after)
+        held, open_loop = [], []
+        for index, clip in enumerate(windows.clips):
+            mask = onset_step_mask(clip, steps, change_after)
+            weights = (windows.start_weights[index].numpy() if windows.start_weights is not None
+                       else np.full(clip.mean.shape[1] - steps + 1, 1 / (clip.mean.shape[1] - steps + 1)))
+            share = 0.0 if mask is None else float(weights[mask].sum())
+            held.append(share)
+            if mask is not None:
+                open_loop.append(share)
+        shares[sampling] = {"all windows": float(np.mean(held)),
+                            "open-loop clips' windows": float(np.mean(open_loop)) if open_loop else None}
+        clips, open_clips = len(held), len(open_loop)
+    return {"clips": clips, "open_loop_clips": open_clips, "steps": steps, "change_after": change_after,
+            "shares": shares}
+
+
+def markdown(result: dict[str, Any]) -> str:
+    lines = [f"{result['clips']} clips ({result['open_loop_clips']} open-loop), windows of {result['steps']} latent "
+             f"steps, onset counted in steps {result['change_after']}…{result['steps'] - 1}", "",
+             "| window sampling | windows holding an onset | of the open-loop clips' windows |", "|---|---:|---:|"]
+    for sampling, share in result["shares"].items():
+        open_loop = share["open-loop clips' windows"]
+        lines.append(f"| {sampling} | {share['all windows']:.3f} | "
+                     f"{'–' if open_loop is None else f'{open_loop:.3f}'} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cache", type=Path, required=True, help="a latent cache root (its train/ split is read)")
+    parser.add_argument("--steps", type=int, default=4, help="latent steps per window (data.steps)")
+    parser.add_argument("--change-after", type=int, default=2, help="context steps of a rollout (data.change_after)")
+    parser.add_argument("--out", type=Path, help="folder for window_onsets.{json,md}")
+    args = parser.parse_args(argv)
+    folders = find_latent_clips(args.cache / "train")
+    if not folders:
+        raise FileNotFoundError(f"--cache {args.cache}: no latent clips under train/")
+    result = onset_shares(folders, args.steps, args.change_after)
+    table = markdown(result)
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(args.out / "window_onsets.json", json.dumps(result, indent=2))
+        atomic_write_text(args.out / "window_onsets.md", table)
+    print(table)
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,106 @@
+"""Where training windows of a latent cache start: uniformly, or where the ego's action changes (latent_windows.py)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gaia_app.data.clip import ClipError
+from gaia_app.data.latent_cache import LatentClip, find_latent_clips, write_latent_clip
+from gaia_app.data.latent_windows import LatentCacheDataModule, LatentWindows, action_changes
+from gaia_app.data.metadata import MetadataEncoder
+
+STEPS, TAU = 8, 4  # latent steps per clip, frames per step
+
+
+def clip_with_turn(clip_id: str, turn_step: int | None, actions: bool = True) -> LatentClip:
+    """A one-camera clip of STEPS latent steps at 10 m/s, straight until latent step `turn_step` (None: straight
+    throughout), then a 0.02 1/m curve. Its latents hold their step's index, so a window tells where it starts."""
+    frames = STEPS * TAU
+    curvature = np.zeros(frames, np.float32)
+    if turn_step is not None:
+        curvature[turn_step * TAU:] = 0.02
+    step_index = np.broadcast_to(np.arange(STEPS, dtype=np.float32)[None, :, None, None, None], (1, STEPS, 4, 2, 3))
+    return LatentClip(clip_id=clip_id, mean=step_index.copy(),
+                      logvar=np.zeros((1, STEPS, 4, 2, 3), np.float32), temporal_downsampling=TAU, fps=12.5,
+                      image_size=(16, 24), timestamps=np.arange(frames) / 12.5, cameras=None, meta={},
+                      actions=np.stack([np.full(frames, 10.0, np.float32), curvature], 1) if actions else None)
+
+
+@pytest.fixture()
+def cache(tmp_path: Path) -> Path:
+    for split in ("train", "val"):
+        write_latent_clip(tmp_path / split, clip_with_turn("turns_at_5", 5))
+        write_latent_clip(tmp_path / split, clip_with_turn("straight", None))
+    return tmp_path
+
+
+def drawn_starts(windows: LatentWindows, index: int, draws: int = 400) -> Counter:
+    torch.manual_seed(0)
+    return Counter(int(windows[index]["mean"][0, 0].max()) for _ in range(draws))
+
+
+def test_action_changes_measure_the_change_after_the_context() -> None:
+    per_step = clip_with_turn("c", 5).actions.reshape(-1, TAU, 2).mean(1)
+    change = action_changes(per_step, steps=4, change_after=2, spread=np.array([1.0, 0.01]))
+    # starts 0..4; the turn at step 5 is after the context (steps s, s+1) and inside the window for s = 2 (once) and
+    # s = 3 (twice: both generated steps turned); s = 4 has it in its context (one of two steps), so a change too
+    np.testing.assert_allclose(change, [0.0, 0.0, 1.0, 2.0, 1.0], atol=1e-6)
+
+
+def test_action_change_sampling_starts_where_the_action_changes(cache: Path) -> None:
+    clips = find_latent_clips(cache / "train")
+    index = [c.name for c in clips].index("turns_at_5")
+    uniform = LatentWindows(clips, 4, MetadataEncoder([]), window_sampling="uniform")
+    changed = LatentWindows(clips, 4, MetadataEncoder([]), window_sampling="action_change", change_after=2)
+    on_change = drawn_starts(changed, index)
+    assert set(on_change) == {2, 3, 4}  # never a window whose 4 steps all drive straight
+    assert on_change[3] > 1.5 * on_change[2] and on_change[3] > 1.5 * on_change[4]  # ∝ the change: 1 : 2 : 1
+    assert set(drawn_starts(uniform, index)) == {0, 1, 2, 3, 4}
+    # a clip whose action never changes keeps uniform starts
+    straight = [c.name for c in clips].index("straight")
+    torch.testing.assert_close(changed.start_weights[straight], torch.full((5,), 0.2, dtype=torch.float64))
+
+
+def test_datamodule_passes_the_sampling_to_training_windows_only(cache: Path) -> None:
+    dm = LatentCacheDataModule(str(cache), steps=4, window_sampling="action_change", change_after=1)
+    dm.setup("fit")
+    assert dm.train_set.start_weights is not None and dm.val_set.start_weights is None
+
+
+def test_bad_sampling_settings_are_named(cache: Path, tmp_path: Path) -> None:
+    clips = find_latent_clips(cache / "train")
+    with pytest.raises(ValueError, match="window_sampling='onsets'"):
+        LatentWindows(clips, 4, MetadataEncoder([]), window_sampling="onsets")
+    with pytest.raises(ValueError, match=r"change_after=4: expected .* \[1, steps − 1 = 3\]"):
+        LatentWindows(clips, 4, MetadataEncoder([]), window_sampling="action_change", change_after=4)
+    write_latent_clip(tmp_path / "bare", clip_with_turn("no_actions", None, actions=False))
+    with pytest.raises(ClipError, match="no_actions"):
+        LatentWindows(find_latent_clips(tmp_path / "bare"), 4, MetadataEncoder([]), window_sampling="action_change")
+
+
+def test_window_onsets_counts_the_windows_whose_generated_steps_hold_the_command_onset(tmp_path: Path) -> None:
+    """benchmarks/window_onsets.py: a clip whose command starts at latent step 5 (frame 20) has it in the generated
+    steps (2, 3) of the windows starting at steps 2 and 3 only: 2 of 5 uniform starts, and under action_change the
+    starts 2 and 3 carry 3 of the 4 units of change (1 : 2 : 1 over starts 2, 3, 4)."""
+    from tests.conftest import load_benchmark
+
+    onsets = load_benchmark("window_onsets")
+    turning = clip_with_turn("turns_at_5", 5)
+    turning.meta = {"open_loop": True, "command_start_s": 20 / 12.5}
+    write_latent_clip(tmp_path / "train", turning)
+    write_latent_clip(tmp_path / "train", clip_with_turn("straight", None))
+    result = onsets.main(["--cache", str(tmp_path), "--steps", "4", "--change-after", "2", "--out", str(tmp_path)])
+    assert result["clips"] == 2 and result["open_loop_clips"] == 1
+    assert result["shares"]["uniform"]["open-loop clips' windows"] == pytest.approx(2 / 5)
+    assert result["shares"]["action_change"]["open-loop clips' windows"] == pytest.approx(3 / 4)
+    assert result["shares"]["uniform"]["all windows"] == pytest.approx(1 / 5)  # the policy clip holds none
+    assert "| action_change | 0.375 | 0.750 |" in (tmp_path / "window_onsets.md").read_text()
+    turning.meta = {"open_loop": True}
+    write_latent_clip(tmp_path / "bare" / "train", turning)
+    with pytest.raises(ClipError, match="turns_at_5.*command_start_s"):
+        onsets.main(["--cache", str(tmp_path / "bare")])
