@@ -14,6 +14,7 @@ from gaia_app.data.synthetic.labels import AgentBoxes
 from gaia_app.data.synthetic.rig import CameraSpec, build_rig
 from gaia_app.diffusion.flow_matching import velocity_target
 from gaia_app.eval.flow_gain import (
+    TAUS,
     condition_gain_report,
     every_window,
     flow_losses,
@@ -132,3 +133,26 @@ def test_component_discrimination_splits_open_loop_from_policy_windows(tmp_path:
         overall = report["component_discrimination"][name]["mean"]
         pooled = (2 * kinds["open-loop clips"]["mean"] + 4 * kinds["policy clips"]["mean"]) / 6
         assert pooled == pytest.approx(overall, rel=1e-5, abs=1e-9)
+
+
+def test_each_flow_time_column_is_that_flow_time_scored_alone(tmp_path: Path) -> None:
+    """The per-τ breakdown against a direct computation at each τ with the noise the report draws for it (two draws
+    per τ, in TAUS order, from seed 0): a breakdown whose columns were swapped or mislabelled fails here."""
+    batch = every_window(cache(tmp_path / "val"), 4, list(META))
+    model, x, cond = net(), batch["mean"] * 0.5, batch_conditions(batch)
+    report = condition_gain_report(model, batch, 0.5, context=2)["component_discrimination_by_tau"]["curvature"]
+    generator = torch.Generator().manual_seed(0)
+    noises = [torch.randn(x.shape, generator=generator) for _ in range(2 * len(TAUS))]
+    swapped = swapped_actions(cond, ("curvature",))
+    for i, tau in enumerate(TAUS):
+        times = torch.full((x.shape[0], 4), tau)
+        times[:, :2] = 1.0
+        step = times[:, None, :, None, None, None]
+        gap = torch.zeros(x.shape[0])
+        for noise in noises[2 * i: 2 * i + 2]:
+            noisy, target = step * x + (1 - step) * noise, velocity_target(x, noise)
+            with torch.no_grad():
+                own, other = ((model(noisy, times, c) - target)[:, :, 2:].pow(2).mean(dim=(1, 2, 3, 4, 5))
+                              for c in (cond, swapped))
+            gap += (other - own) / 2
+        assert report[str(tau)]["mean"] == pytest.approx(float(gap.mean()), rel=1e-4, abs=1e-9), f"τ = {tau}"
