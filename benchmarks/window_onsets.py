@@ -3,9 +3,11 @@ way of drawing windows (`data.window_sampling`, gaia_app/data/latent_windows.py)
 samplers' start probabilities, no draws.
 
 A synthetic clip that leaves its policy (meta.open_loop) records when its command starts (meta.command_start_s). A
-window of `steps` latent steps starting at step s "holds the onset" when that frame lies in its steps from
-`change_after` on, the steps a rollout with `change_after` context steps generates: the futures that must start a
-turn or a brake the context does not show.
+window of `steps` latent steps starting at step s "holds the onset in its generated steps" when that frame lies in
+its steps from `change_after` on, the steps a rollout with `change_after` context steps generates: futures that must
+start a turn or a brake the context does not show. The table also counts the windows whose last context step holds
+the onset (the context shows its start: a latent step spans τ frames, so an onset within a step is split between
+the two windows around it).
 
     python benchmarks/window_onsets.py --cache outputs/road_users/latents_s4 --steps 4 --change-after 2 --out onsets
 """
@@ -25,9 +27,13 @@ from gaia_app.data.latent_windows import WINDOW_SAMPLING, LatentWindows
 from gaia_app.data.metadata import MetadataEncoder
 from gaia_app.utils.run_dir import atomic_write_text
 
+PLACES = {"generated steps": (0, None), "last context step": (-1, 0)}  # latent steps relative to change_after
 
-def onset_step_mask(clip: LatentClip, steps: int, change_after: int) -> np.ndarray | None:
-    """(starts,) bool per window start: its generated steps hold the clip's command onset; None for a policy clip.
+
+def onset_step_mask(clip: LatentClip, steps: int, change_after: int,
+                    place: str = "generated steps") -> np.ndarray | None:
+    """(starts,) bool per window start: the clip's command onset lies in the window's `place` (PLACES: its generated
+    steps, or its last context step, where the context shows part of the command); None for a policy clip.
     ClipError naming an open-loop clip without meta.command_start_s."""
     if not clip.meta.get("open_loop"):
         return None
@@ -36,26 +42,31 @@ def onset_step_mask(clip: LatentClip, steps: int, change_after: int) -> np.ndarr
                         "again: the synthetic world records when its command starts)")
     onset = int(np.searchsorted(clip.timestamps, float(clip.meta["command_start_s"]) - 1e-6))
     tau, starts = clip.temporal_downsampling, np.arange(clip.mean.shape[1] - steps + 1)
-    return ((starts + change_after) * tau <= onset) & (onset < (starts + steps) * tau)
+    first, last = PLACES[place]
+    end = starts + (steps if last is None else change_after + last)
+    return ((starts + change_after + first) * tau <= onset) & (onset < end * tau)
 
 
 def onset_shares(folders: list[Path], steps: int, change_after: int) -> dict[str, Any]:
-    """{sampling: {"all windows": share, "open-loop clips' windows": share}} plus the clip counts."""
+    """{sampling: {place: {"all windows": share, "open-loop clips' windows": share}}} for each place of PLACES, plus
+    the clip counts."""
     shares: dict[str, Any] = {}
     for sampling in WINDOW_SAMPLING:
         windows = LatentWindows(folders, steps, MetadataEncoder([]), window_sampling=sampling,
                                 change_after=change_after)
-        held, open_loop = [], []
-        for index, clip in enumerate(windows.clips):
-            mask = onset_step_mask(clip, steps, change_after)
-            weights = (windows.start_weights[index].numpy() if windows.start_weights is not None
-                       else np.full(clip.mean.shape[1] - steps + 1, 1 / (clip.mean.shape[1] - steps + 1)))
-            share = 0.0 if mask is None else float(weights[mask].sum())
-            held.append(share)
-            if mask is not None:
-                open_loop.append(share)
-        shares[sampling] = {"all windows": float(np.mean(held)),
-                            "open-loop clips' windows": float(np.mean(open_loop)) if open_loop else None}
+        shares[sampling] = {}
+        for place in PLACES:
+            held, open_loop = [], []
+            for index, clip in enumerate(windows.clips):
+                mask = onset_step_mask(clip, steps, change_after, place)
+                weights = (windows.start_weights[index].numpy() if windows.start_weights is not None
+                           else np.full(clip.mean.shape[1] - steps + 1, 1 / (clip.mean.shape[1] - steps + 1)))
+                share = 0.0 if mask is None else float(weights[mask].sum())
+                held.append(share)
+                if mask is not None:
+                    open_loop.append(share)
+            shares[sampling][place] = {"all windows": float(np.mean(held)),
+                                       "open-loop clips' windows": float(np.mean(open_loop)) if open_loop else None}
         clips, open_clips = len(held), len(open_loop)
     return {"clips": clips, "open_loop_clips": open_clips, "steps": steps, "change_after": change_after,
             "shares": shares}
@@ -63,12 +74,15 @@ def onset_shares(folders: list[Path], steps: int, change_after: int) -> dict[str
 
 def markdown(result: dict[str, Any]) -> str:
     lines = [f"{result['clips']} clips ({result['open_loop_clips']} open-loop), windows of {result['steps']} latent "
-             f"steps, onset counted in steps {result['change_after']}…{result['steps'] - 1}", "",
-             "| window sampling | windows holding an onset | of the open-loop clips' windows |", "|---|---:|---:|"]
-    for sampling, share in result["shares"].items():
-        open_loop = share["open-loop clips' windows"]
-        lines.append(f"| {sampling} | {share['all windows']:.3f} | "
-                     f"{'–' if open_loop is None else f'{open_loop:.3f}'} |")
+             f"steps, {result['change_after']} of them context", "",
+             "| window sampling | " + " | ".join(f"onset in the {place}: all windows | of the open-loop clips' windows"
+                                              for place in PLACES) + " |", "|---" + "|---:" * 2 * len(PLACES) + "|"]
+    for sampling, by_place in result["shares"].items():
+        cells = []
+        for share in by_place.values():
+            open_loop = share["open-loop clips' windows"]
+            cells += [f"{share['all windows']:.3f}", "–" if open_loop is None else f"{open_loop:.3f}"]
+        lines.append(f"| {sampling} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

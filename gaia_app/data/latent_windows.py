@@ -6,11 +6,13 @@ Per-frame labels become per-step ones: actions are averaged over the τ frames o
 and agents are those of the step's first frame, the caption that of its middle frame.
 
 Training windows start uniformly in their clip (`window_sampling="uniform"`, the report's protocol as far as it says),
-or where the ego's action changes (`"action_change"`, ours): a start is drawn with probability proportional to how far
-the mean action of the window's steps after `change_after` differs from that of the steps before it, each component
-in units of its spread over the training cache. A command's onset is rare in driving logs (in the synthetic world
-an open-loop switch falls in the generated half of about a sixth of the windows), yet it is what a rollout asked to
-turn or brake must produce from a context that does not (docs/paper_faithful.md, "Where the GAIA-2 curvature goes").
+or where the ego's command changes (`"action_change"`, ours): a start is drawn with probability proportional to the
+square of how far the mean command of the window's steps from `change_after` on differs from that of the steps
+before, each component in units of its spread over the training cache. The command is (acceleration, curvature), the
+speed's rate of change rather than the speed: a constant braking lowers the speed in every window after its onset,
+but its acceleration changes only at the onset. A command's onset is rare in driving logs (in the synthetic world an
+open-loop switch falls in the generated half of about a sixth of the windows), yet it is what a rollout asked to turn
+or brake must produce from a context that does not (docs/paper_faithful.md, "Where the GAIA-2 curvature goes").
 """
 
 from __future__ import annotations
@@ -67,34 +69,40 @@ class LatentWindows(Dataset):
         return latent_window(clip, start, self.steps, self.metadata)
 
 
-def step_actions(clip: LatentClip) -> np.ndarray:
-    """(t, 2) per latent step: the clip's per-frame actions averaged over each step's τ frames (as `latent_window`)."""
-    tau = clip.temporal_downsampling
-    return clip.actions.reshape(-1, tau, 2).mean(1)
+def step_commands(clip: LatentClip) -> np.ndarray:
+    """(t, 2) per latent step: (acceleration m/s², curvature 1/m), each the mean over the step's τ frames (as
+    `latent_window` averages actions); a frame's acceleration is its speed minus the previous frame's times the frame
+    rate (the first frame takes the second's), so a command that starts within a step shows in that step's share."""
+    speed = clip.actions[:, 0].astype(np.float64)
+    acceleration = np.diff(speed, prepend=speed[0] if len(speed) < 2 else 2 * speed[0] - speed[1]) * clip.fps
+    per_frame = np.stack([acceleration, clip.actions[:, 1].astype(np.float64)], axis=1)
+    return per_frame.reshape(-1, clip.temporal_downsampling, 2).mean(1)
 
 
-def action_changes(actions: np.ndarray, steps: int, change_after: int, spread: np.ndarray) -> np.ndarray:
-    """actions (t, 2) per latent step → (t − steps + 1,) per window start: the L1 distance between the mean action of
-    the window's steps from `change_after` on and that of its steps before, each component divided by `spread`."""
-    windows = np.lib.stride_tricks.sliding_window_view(actions, steps, axis=0)  # (starts, 2, steps)
+def action_changes(commands: np.ndarray, steps: int, change_after: int, spread: np.ndarray) -> np.ndarray:
+    """commands (t, 2) per latent step → (t − steps + 1,) per window start: the L1 distance between the mean command
+    of the window's steps from `change_after` on and that of its steps before, each component divided by `spread`."""
+    windows = np.lib.stride_tricks.sliding_window_view(commands, steps, axis=0)  # (starts, 2, steps)
     before, after = windows[..., :change_after].mean(-1), windows[..., change_after:].mean(-1)
     return (np.abs(after - before) / spread).sum(-1)
 
 
 def action_change_weights(clips: Sequence[LatentClip], steps: int, change_after: int) -> list[torch.Tensor]:
-    """Per clip, (starts,) probabilities of its window starts ∝ `action_changes` (the module docstring); a clip
-    whose action never changes gets uniform starts. ClipError naming a clip without actions."""
+    """Per clip, (starts,) probabilities of its window starts ∝ the square of `action_changes` of its `step_commands`
+    (the module docstring): squared, the start whose generated steps begin where the command changes outweighs the
+    two starts that hold half the change (its onset in their last context or last generated step) 4 : 1 each. A clip
+    whose command never changes gets uniform starts. ClipError naming a clip without actions."""
     if not 1 <= change_after < steps:
         raise ValueError(f"change_after={change_after}: expected a number of latent steps in [1, steps − 1 = "
                          f"{steps - 1}]")
     missing = [c.clip_id for c in clips if c.actions is None]
     if missing:
         raise ClipError(f"window_sampling=action_change needs actions; latent clips {missing[:5]} have none")
-    per_step = [step_actions(c) for c in clips]
+    per_step = [step_commands(c) for c in clips]
     spread = np.concatenate(per_step).std(0) + 1e-6  # each component in units of its spread over the cache
     weights = []
-    for actions in per_step:
-        change = action_changes(actions, steps, change_after, spread).astype(np.float64)
+    for commands in per_step:
+        change = action_changes(commands, steps, change_after, spread) ** 2
         total = change.sum()
         weights.append(torch.from_numpy(change / total if total > 0 else np.full_like(change, 1 / len(change))))
     return weights

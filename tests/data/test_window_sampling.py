@@ -11,7 +11,13 @@ import torch
 
 from gaia_app.data.clip import ClipError
 from gaia_app.data.latent_cache import LatentClip, find_latent_clips, write_latent_clip
-from gaia_app.data.latent_windows import LatentCacheDataModule, LatentWindows, action_changes
+from gaia_app.data.latent_windows import (
+    LatentCacheDataModule,
+    LatentWindows,
+    action_change_weights,
+    action_changes,
+    step_commands,
+)
 from gaia_app.data.metadata import MetadataEncoder
 
 STEPS, TAU = 8, 4  # latent steps per clip, frames per step
@@ -45,11 +51,26 @@ def drawn_starts(windows: LatentWindows, index: int, draws: int = 400) -> Counte
 
 
 def test_action_changes_measure_the_change_after_the_context() -> None:
-    per_step = clip_with_turn("c", 5).actions.reshape(-1, TAU, 2).mean(1)
-    change = action_changes(per_step, steps=4, change_after=2, spread=np.array([1.0, 0.01]))
+    commands = step_commands(clip_with_turn("c", 5))
+    np.testing.assert_allclose(commands[:, 0], 0.0)  # a steady 10 m/s: no acceleration
+    change = action_changes(commands, steps=4, change_after=2, spread=np.array([1.0, 0.01]))
     # starts 0..4; the turn at step 5 is after the context (steps s, s+1) and inside the window for s = 2 (once) and
     # s = 3 (twice: both generated steps turned); s = 4 has it in its context (one of two steps), so a change too
     np.testing.assert_allclose(change, [0.0, 0.0, 1.0, 2.0, 1.0], atol=1e-6)
+
+
+def test_a_constant_braking_weighs_its_onset_not_the_windows_after_it() -> None:
+    """A 12-step clip braking at 4 m/s² from latent step 5 on: its speed falls in every later window, its command
+    (acceleration) changes only around the onset, so the windows wholly after it are never drawn."""
+    frames, onset = 12 * TAU, 5 * TAU
+    speed = 10.0 - 4.0 * np.clip(np.arange(frames) - onset + 1, 0, None) / 12.5
+    clip = LatentClip(clip_id="brakes", mean=np.zeros((1, 12, 4, 2, 3), np.float32),
+                      logvar=np.zeros((1, 12, 4, 2, 3), np.float32), temporal_downsampling=TAU, fps=12.5,
+                      image_size=(16, 24), timestamps=np.arange(frames) / 12.5, cameras=None, meta={},
+                      actions=np.stack([speed, np.zeros(frames)], 1).astype(np.float32))
+    np.testing.assert_allclose(step_commands(clip)[6:, 0], -4.0, atol=1e-4)
+    weights = action_change_weights([clip], steps=4, change_after=2)[0]
+    assert int(weights.argmax()) == 3 and float(weights[6:].sum()) < 1e-4  # starts 6–8 lie wholly after the onset
 
 
 def test_action_change_sampling_starts_where_the_action_changes(cache: Path) -> None:
@@ -59,7 +80,7 @@ def test_action_change_sampling_starts_where_the_action_changes(cache: Path) -> 
     changed = LatentWindows(clips, 4, MetadataEncoder([]), window_sampling="action_change", change_after=2)
     on_change = drawn_starts(changed, index)
     assert set(on_change) == {2, 3, 4}  # never a window whose 4 steps all drive straight
-    assert on_change[3] > 1.5 * on_change[2] and on_change[3] > 1.5 * on_change[4]  # ∝ the change: 1 : 2 : 1
+    assert on_change[3] > 2.5 * on_change[2] and on_change[3] > 2.5 * on_change[4]  # ∝ the change squared: 1 : 4 : 1
     assert set(drawn_starts(uniform, index)) == {0, 1, 2, 3, 4}
     # a clip whose action never changes keeps uniform starts
     straight = [c.name for c in clips].index("straight")
@@ -85,8 +106,8 @@ def test_bad_sampling_settings_are_named(cache: Path, tmp_path: Path) -> None:
 
 def test_window_onsets_counts_the_windows_whose_generated_steps_hold_the_command_onset(tmp_path: Path) -> None:
     """benchmarks/window_onsets.py: a clip whose command starts at latent step 5 (frame 20) has it in the generated
-    steps (2, 3) of the windows starting at steps 2 and 3 only: 2 of 5 uniform starts, and under action_change the
-    starts 2 and 3 carry 3 of the 4 units of change (1 : 2 : 1 over starts 2, 3, 4)."""
+    steps (2, 3) of the windows starting at steps 2 and 3, in the last context step of the one starting at 4: 2 and 1
+    of 5 uniform starts; under action_change the starts 2, 3, 4 weigh 1 : 4 : 1 (the change squared)."""
     from tests.conftest import load_benchmark
 
     onsets = load_benchmark("window_onsets")
@@ -96,10 +117,13 @@ def test_window_onsets_counts_the_windows_whose_generated_steps_hold_the_command
     write_latent_clip(tmp_path / "train", clip_with_turn("straight", None))
     result = onsets.main(["--cache", str(tmp_path), "--steps", "4", "--change-after", "2", "--out", str(tmp_path)])
     assert result["clips"] == 2 and result["open_loop_clips"] == 1
-    assert result["shares"]["uniform"]["open-loop clips' windows"] == pytest.approx(2 / 5)
-    assert result["shares"]["action_change"]["open-loop clips' windows"] == pytest.approx(3 / 4)
-    assert result["shares"]["uniform"]["all windows"] == pytest.approx(1 / 5)  # the policy clip holds none
-    assert "| action_change | 0.375 | 0.750 |" in (tmp_path / "window_onsets.md").read_text()
+    uniform, changed = result["shares"]["uniform"], result["shares"]["action_change"]
+    assert uniform["generated steps"]["open-loop clips' windows"] == pytest.approx(2 / 5)
+    assert uniform["last context step"]["open-loop clips' windows"] == pytest.approx(1 / 5)
+    assert uniform["generated steps"]["all windows"] == pytest.approx(1 / 5)  # the policy clip holds none
+    assert changed["generated steps"]["open-loop clips' windows"] == pytest.approx(5 / 6)
+    assert changed["last context step"]["open-loop clips' windows"] == pytest.approx(1 / 6)
+    assert "| action_change | 0.417 | 0.833 | 0.083 | 0.167 |" in (tmp_path / "window_onsets.md").read_text()
     turning.meta = {"open_loop": True}
     write_latent_clip(tmp_path / "bare" / "train", turning)
     with pytest.raises(ClipError, match="turns_at_5.*command_start_s"):
