@@ -5,7 +5,8 @@ r"""What a trained GAIA-2 latent world model reads from its actions and agents, 
     python benchmarks/gaia2_condition_gain.py --weights gaia2 --latents data/latents/val   # a weights folder
 
 Every window of `--steps` latent steps at every start of every clip in `--latents`; the first `--context` steps
-clean, the rest noised at τ ∈ {0.25, 0.5, 0.75} with two fixed noise draws each (gaia_app/eval/flow_gain.py).
+clean, the rest noised at τ ∈ {0.25, 0.5, 0.75} (or `--taus`) with two fixed noise draws each
+(gaia_app/eval/flow_gain.py).
 Prints, per variant of the conditions, the velocity MSE and what it saves over dropping both actions and agents,
 and the action discrimination: the loss of another window's actions minus that of the window's own, with and
 without agents, and per action component (speed or curvature alone swapped) (± 95 % over windows). A model that
@@ -20,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from gaia_app.eval.flow_gain import condition_gain_report, every_window
+from gaia_app.eval.flow_gain import TAUS, condition_gain_report, every_window
 from gaia_app.utils.run_dir import atomic_write_text
 from gaia_app.weights.folders import load_nets, shipped_folder
 from gaia_app.weights.nets import checkpoint_nets
@@ -34,6 +35,8 @@ def main() -> None:
     parser.add_argument("--latents", required=True, help="a split folder of a latent cache (e.g. data/latents/val)")
     parser.add_argument("--steps", type=int, default=4)
     parser.add_argument("--context", type=int, default=2)
+    parser.add_argument("--taus", type=float, nargs="+", default=list(TAUS),
+                        help="flow times to score, in [0, 1) (default %(default)s; 0 is pure noise)")
     parser.add_argument("--out", help="also write the numbers to this JSON file")
     args = parser.parse_args()
     if args.weights:
@@ -42,7 +45,7 @@ def main() -> None:
         nets, config, _ = checkpoint_nets(args.world_model_ckpt, "latent_world_model", "--world-model-ckpt", "cpu")
     net = nets["net"].eval()
     batch = every_window(args.latents, args.steps, list(net.conditioner.metadata_fields))
-    report = condition_gain_report(net, batch, float(config.get("latent_scale", 1.0)), args.context)
+    report = condition_gain_report(net, batch, float(config.get("latent_scale", 1.0)), args.context, args.taus)
     print(f"{report['windows']} windows of {args.steps} steps, {args.context} clean")
     for name in report["losses"]:
         gain = report["gain_over_neither"][name]

@@ -74,6 +74,11 @@ def test_condition_gain_reads_a_weights_folder(checkpoints, monkeypatch, capsys)
     module.main()
     out = capsys.readouterr().out
     assert re.search(r"action discrimination with agents +[+-][\d.]+ \[[+-][\d.]+, [+-][\d.]+\]", out), out
+    monkeypatch.setattr(sys, "argv", ["gain", "--weights", "gaia2", "--latents", str(checkpoints["latents"] / "val"),
+                                      "--taus", "0.05"])
+    module.main()
+    out = capsys.readouterr().out
+    assert "at τ 0.05 " in out and "at τ 0.25" not in out
 
 
 @BENCHMARK_SCRIPT

@@ -156,3 +156,16 @@ def test_each_flow_time_column_is_that_flow_time_scored_alone(tmp_path: Path) ->
                               for c in (cond, swapped))
             gap += (other - own) / 2
         assert report[str(tau)]["mean"] == pytest.approx(float(gap.mean()), rel=1e-4, abs=1e-9), f"τ = {tau}"
+
+
+def test_the_flow_times_scored_can_be_chosen(tmp_path: Path) -> None:
+    """taus: near pure noise (where a rollout lays out its frames) as well as TAUS; refused outside [0, 1)."""
+    batch = every_window(cache(tmp_path / "val"), 4, list(META))
+    report = condition_gain_report(net(), batch, 0.5, context=2, taus=(0.05, 0.1))
+    assert report["taus"] == [0.05, 0.1]
+    assert list(report["component_discrimination_by_tau"]["curvature"]) == ["0.05", "0.1"]
+    default = condition_gain_report(net(), batch, 0.5, context=2)
+    assert default["taus"] == list(TAUS)
+    assert report["component_discrimination"]["curvature"] != default["component_discrimination"]["curvature"]
+    with pytest.raises(ValueError, match=r"flow times to score: expected values in \[0, 1\)"):
+        condition_gain_report(net(), batch, 0.5, context=2, taus=(1.0,))

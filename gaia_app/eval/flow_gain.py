@@ -102,17 +102,21 @@ def every_window(folder: str | Path, steps: int, fields: Sequence[str]) -> dict[
     return batch
 
 
-def condition_gain_report(net: LatentWorldModel, batch: dict[str, Any], latent_scale: float, context: int
-                          ) -> dict[str, Any]:
+def condition_gain_report(net: LatentWorldModel, batch: dict[str, Any], latent_scale: float, context: int,
+                          taus: Sequence[float] = TAUS) -> dict[str, Any]:
     """Losses of `action_variants` on a latent-window batch, what each saves over "neither", the action
     discrimination (swapped minus own actions, with and without agents) and the same per action component (only
     that column swapped, agents given), also per flow time τ, per generated step and per kind of clip (open-loop or
     policy; `every_window`'s "open_loop"), to say where in the sampler, how far ahead and on which windows each
-    component is read; ± 95 % intervals over windows."""
+    component is read; ± 95 % intervals over windows. `taus`: the flow times scored (a rollout lays out its frames
+    near τ = 0, where the default TAUS do not look)."""
+    if not taus or any(not 0.0 <= tau < 1.0 for tau in taus):
+        raise ValueError(f"flow times to score: expected values in [0, 1) (1 is the clean latent), got {list(taus)}")
     x = batch["mean"] * latent_scale
-    tables = flow_loss_table(net, x, action_variants(batch_conditions(batch)), context, TAUS)
+    tables = flow_loss_table(net, x, action_variants(batch_conditions(batch)), context, taus)
     losses = {name: table.mean(dim=(1, 2)) for name, table in tables.items()}
-    report: dict[str, Any] = {"windows": int(x.shape[0]), "context": context, "losses": {}, "gain_over_neither": {},
+    report: dict[str, Any] = {"windows": int(x.shape[0]), "context": context, "taus": [float(t) for t in taus],
+                              "losses": {}, "gain_over_neither": {},
                               "action_discrimination": {}, "component_discrimination": {},
                               "component_discrimination_by_tau": {}, "component_discrimination_by_step": {},
                               "component_discrimination_by_clip": {}}
@@ -126,7 +130,7 @@ def condition_gain_report(net: LatentWorldModel, batch: dict[str, Any], latent_s
         gap = tables[f"swapped {name} and agents"] - tables["actions and agents"]  # (b, taus, generated steps)
         report["component_discrimination"][name] = asdict(mean_interval(gap.mean(dim=(1, 2)).tolist()))
         report["component_discrimination_by_tau"][name] = {
-            str(tau): asdict(mean_interval(gap[:, i].mean(dim=1).tolist())) for i, tau in enumerate(TAUS)}
+            str(tau): asdict(mean_interval(gap[:, i].mean(dim=1).tolist())) for i, tau in enumerate(taus)}
         report["component_discrimination_by_step"][name] = {
             str(context + k): asdict(mean_interval(gap[:, :, k].mean(dim=1).tolist())) for k in range(gap.shape[2])}
         report["component_discrimination_by_clip"][name] = clip_kind_intervals(gap.mean(dim=(1, 2)),
