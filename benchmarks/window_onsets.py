@@ -22,9 +22,8 @@ from typing import Any
 import numpy as np
 
 from gaia_app.data.clip import ClipError
-from gaia_app.data.latent_cache import LatentClip, find_latent_clips
-from gaia_app.data.latent_windows import WINDOW_SAMPLING, LatentWindows
-from gaia_app.data.metadata import MetadataEncoder
+from gaia_app.data.latent_cache import LatentClip, find_latent_clips, read_latent_clip
+from gaia_app.data.latent_windows import WINDOW_SAMPLING, start_probabilities
 from gaia_app.utils.run_dir import atomic_write_text
 
 PLACES = {"generated steps": (0, None), "last context step": (-1, 0)}  # latent steps relative to change_after
@@ -50,25 +49,19 @@ def onset_step_mask(clip: LatentClip, steps: int, change_after: int,
 def onset_shares(folders: list[Path], steps: int, change_after: int) -> dict[str, Any]:
     """{sampling: {place: {"all windows": share, "open-loop clips' windows": share}}} for each place of PLACES, plus
     the clip counts."""
+    clips = [read_latent_clip(folder) for folder in folders]
+    masks = {place: [onset_step_mask(clip, steps, change_after, place) for clip in clips] for place in PLACES}
+    open_loop = [i for i, mask in enumerate(masks["generated steps"]) if mask is not None]
     shares: dict[str, Any] = {}
     for sampling in WINDOW_SAMPLING:
-        windows = LatentWindows(folders, steps, MetadataEncoder([]), window_sampling=sampling,
-                                change_after=change_after)
+        weights = start_probabilities(clips, steps, sampling, change_after)
         shares[sampling] = {}
-        for place in PLACES:
-            held, open_loop = [], []
-            for index, clip in enumerate(windows.clips):
-                mask = onset_step_mask(clip, steps, change_after, place)
-                weights = (windows.start_weights[index].numpy() if windows.start_weights is not None
-                           else np.full(clip.mean.shape[1] - steps + 1, 1 / (clip.mean.shape[1] - steps + 1)))
-                share = 0.0 if mask is None else float(weights[mask].sum())
-                held.append(share)
-                if mask is not None:
-                    open_loop.append(share)
-            shares[sampling][place] = {"all windows": float(np.mean(held)),
-                                       "open-loop clips' windows": float(np.mean(open_loop)) if open_loop else None}
-        clips, open_clips = len(held), len(open_loop)
-    return {"clips": clips, "open_loop_clips": open_clips, "steps": steps, "change_after": change_after,
+        for place, place_masks in masks.items():
+            held = [0.0 if mask is None else float(w.numpy()[mask].sum()) for w, mask in zip(weights, place_masks)]
+            shares[sampling][place] = {
+                "all windows": float(np.mean(held)),
+                "open-loop clips' windows": float(np.mean([held[i] for i in open_loop])) if open_loop else None}
+    return {"clips": len(clips), "open_loop_clips": len(open_loop), "steps": steps, "change_after": change_after,
             "shares": shares}
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 from hydra.utils import instantiate
 from rerun.chunk import RrdReader
 
@@ -248,6 +249,9 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     # frames
     assert results["actions"]["probe_stride"] == 2 and results["actions"]["scored_steps"] == 2
     assert results["actions"]["probe_cameras"] == "rig" and "Action adherence (every camera of the rig," in table
+    # the action probe is saved with the run, for later runs to load (model.evaluate.action_probe)
+    saved = yaml.safe_load((tmp_path / "action_probe" / "action_probe.yaml").read_text())
+    assert saved["probe_steps"] == 3 and saved["fit"] == results["probe_fit"]["action_probe"]
 
     # one table with a GAIA-1 evaluation run (its evaluation.json layout, protocols/evaluate.py)
     gaia1 = tmp_path / "gaia1"

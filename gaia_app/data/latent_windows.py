@@ -87,6 +87,18 @@ def action_changes(commands: np.ndarray, steps: int, change_after: int, spread: 
     return (np.abs(after - before) / spread).sum(-1)
 
 
+def start_probabilities(clips: Sequence[LatentClip], steps: int, window_sampling: str,
+                        change_after: int = 2) -> list[torch.Tensor]:
+    """Per clip, (starts,) float64 probability of each training window start under `window_sampling` (uniform, or
+    `action_change_weights`)."""
+    if window_sampling not in WINDOW_SAMPLING:
+        raise ValueError(f"window_sampling={window_sampling!r}: expected one of {WINDOW_SAMPLING}")
+    if window_sampling == "action_change":
+        return action_change_weights(clips, steps, change_after)
+    return [torch.full((c.mean.shape[1] - steps + 1,), 1 / (c.mean.shape[1] - steps + 1), dtype=torch.float64)
+            for c in clips]
+
+
 def action_change_weights(clips: Sequence[LatentClip], steps: int, change_after: int) -> list[torch.Tensor]:
     """Per clip, (starts,) probabilities of its window starts ∝ the square of `action_changes` of its `step_commands`
     (the module docstring): squared, the start whose generated steps begin where the command changes outweighs the
