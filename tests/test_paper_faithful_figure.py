@@ -21,6 +21,8 @@ def test_a_line_through_the_budgets_reaches_the_target_where_it_should() -> None
     assert bench.crossing([1e14, 1e15], [2.0, 3.0], 1.0, lower_is_better=True) == "moving away"
     assert bench.crossing([1e14, 1e15], [0.2, 0.4], 0.8, lower_is_better=False) == "≈ 1.0e+17 FLOPs (100× the largest)"
     assert bench.crossing([1e14], [3.0], 1.0, lower_is_better=True) == "one budget"
+    # 0.01 per decade from 0.97: 2.0 is a hundred decades away, so the line is read as flat
+    assert bench.crossing([1e14, 1e15], [0.97, 0.98], 2.0, lower_is_better=False) == "flat: beyond 10^6× the largest"
 
 
 def test_the_study_draws_both_figures_and_reads_every_arm_and_metric(tmp_path: Path) -> None:
@@ -37,6 +39,9 @@ def test_the_study_draws_both_figures_and_reads_every_arm_and_metric(tmp_path: P
     assert by_key[("GAIA-1", "paper", "curvature")] == "met"
     assert by_key[("GAIA-1", "paper", "speed")].startswith("≈")
     assert by_key[("GAIA-2", "paper", "agent ratio")] == "one budget"
+    # GAIA-2's onset arm: twice the budget takes its curvature off the floor, its agents do nothing at either
+    assert by_key[("GAIA-2", "paper_onsets", "curvature")].startswith("≈")
+    assert by_key[("GAIA-2", "paper_onsets", "agent ratio")].startswith("flat")
     assert json.loads((tmp_path / "crossings.json").read_text()) == rows
 
 
