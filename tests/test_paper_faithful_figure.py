@@ -65,6 +65,9 @@ def test_every_point_is_the_one_its_table_gives() -> None:
                 assert f"{mean:.3f} [{low:.3f}, {high:.3f}]" in section, (*where, key)
     speed = next(r for r in bench.crossings(study) if r["arm"] == "paper" and r["metric"] == "speed")
     assert speed["crossing"] == "≈ 3.0e+19 FLOPs (2387× the largest)" and "2 387× the GPU budget" in doc
+    # the GAIA-2 onset arm's curvature line, as the doc's table gives it (about 3.5× the CPU budget of 2.7e14)
+    curvature = next(r for r in bench.crossings(study) if r["arm"] == "paper_onsets" and r["metric"] == "curvature")
+    assert curvature["crossing"] == "≈ 9.5e+14 FLOPs (2× the largest)" and "≈ 9.5e+14 FLOPs" in doc
 
 
 def section_of(doc: str, source: str) -> str:
