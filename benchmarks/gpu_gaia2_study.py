@@ -7,7 +7,8 @@ r"""Issue 50 on one GPU: the GAIA-2 paper-faithful study's larger budgets on the
 The CPU budget of the study (docs/paper_faithful.md, "GAIA-2 on the road-users latents") trained both arms for 2 000
 steps of 8 windows with the tiny net. A curve against compute needs the same arms at larger budgets, with width and
 depth growing with it: experiment=gaia2/road_users/world_model_s4_gpu (twice the width, twice the depth, 32 windows a
-step: about 32× the CPU recipe's FLOPs per step) for the shortcut arm, world_model_s4_paper_gpu for the paper arm.
+step: about 32× the CPU recipe's FLOPs per step) for the shortcut arm, world_model_s4_paper_gpu for the paper arm and
+its variants (`ARMS`; the onset arm trains on the cache's open-loop clips alone, `data.train_meta`).
 Stages (benchmarks/gpu_road_users.py's machinery):
   encode     generate.py mode=encode with the shipped s = 4 tokenizer (gaia_app/weights/gaia2_road_users) on CUDA,
              14 render workers: the study's 960 clips (half driven off their policy) and 16 held out, as on the CPU
@@ -49,11 +50,17 @@ ARMS = {
     "paper_agentloss": ("gaia2/road_users/world_model_s4_paper_gpu", ("model.agent_loss_weight=9.0",)),
     "paper_boxattn_agentloss": ("gaia2/road_users/world_model_s4_paper_gpu",
                                 ("model.net.agent_box_attention=true", "model.agent_loss_weight=9.0")),
+    # the onset arm (experiment=gaia2/road_users/world_model_s4_paper_onsets at GPU size): the cache's open-loop clips
+    # only, windows drawn where the command changes; the CPU arm whose curvature left its floor at 2× its budget
+    "paper_onsets": ("gaia2/road_users/world_model_s4_paper_gpu",
+                     ("data.window_sampling=action_change", "data.change_after=2", "data.train_meta={open_loop:true}")),
 }
 # the study's clips (docs/paper_faithful.md): 960 of 32 frames on the 3-camera rig, half driven, 16 held out
 CLIPS = ["data=synthetic_rig", "data.source.num_clips=960", "data.source.clip_len=32", "data.source.driven_share=0.5",
          "data.val_source.num_clips=16"]
-DRY_CLIPS = ["data=synthetic_rig", "data.source.num_clips=2", "data.source.clip_len=32", "data.val_source.num_clips=1"]
+# every dry clip driven off its policy, so the onset arm's open-loop selection has clips to train on
+DRY_CLIPS = ["data=synthetic_rig", "data.source.num_clips=2", "data.source.clip_len=32", "data.source.driven_share=1.0",
+             "data.val_source.num_clips=1"]
 BUDGETS = {"encode": 180}
 
 
@@ -88,8 +95,10 @@ def pack(out: Path, back: Path, names: list[str]) -> None:
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, required=True, help="what comes back: gaia2_study.json and gaia2_study.tar")
-    # the box-masked arm is the paper arm's variant that used its agents at the CPU budget (docs/paper_faithful.md)
-    p.add_argument("--arms", nargs="+", choices=sorted(ARMS), default=["shortcut", "paper", "paper_boxattn"])
+    # the box-masked arm is the paper arm's variant that used its agents at the CPU budget, the onset arm the one whose
+    # curvature left its floor with budget (docs/paper_faithful.md)
+    p.add_argument("--arms", nargs="+", choices=sorted(ARMS),
+                   default=["shortcut", "paper", "paper_boxattn", "paper_onsets"])
     # a step of the GPU net ≈ 31 CPU steps (8× the block parameters, 4× the windows): 250 steps ≈ 4× the CPU budget's
     # FLOPs, 2 000 ≈ 31×, so with the CPU budget three budgets spanning ≥ 30× (issue 50)
     p.add_argument("--steps", type=int, nargs="+", default=[2000, 250], help="training steps per budget")

@@ -28,6 +28,13 @@ def test_each_arm_gets_its_experiment_budget_and_options(study, tmp_path: Path) 
             "trainer.val_check_interval=1000"} <= set(keyed)
     weighted = study.train_command("paper_boxattn_agentloss", 250, latents, tmp_path / "run", 300, dry=False)
     assert {"model.net.agent_box_attention=true", "model.agent_loss_weight=9.0"} <= set(weighted)
+    onsets = study.train_command("paper_onsets", 250, latents, tmp_path / "run", 300, dry=False)
+    assert {"experiment=gaia2/road_users/world_model_s4_paper_gpu", "data.window_sampling=action_change",
+            "data.train_meta={open_loop:true}"} <= set(onsets)
+    assert "paper_onsets" in study.parse_args(["--out", str(tmp_path)]).arms
+    experiment, extra = study.ARMS["paper_onsets"]
+    composed = compose_config("train", [f"experiment={experiment}", *extra], tmp_path / "onsets")
+    assert dict(composed.data.train_meta) == {"open_loop": True}
     shortcut = study.train_command("shortcut", 1200, latents, tmp_path / "run", 300, dry=False)
     assert "experiment=gaia2/road_users/world_model_s4_gpu" in shortcut
     assert not any(a.startswith("model.net.agent_position") for a in shortcut)
@@ -70,13 +77,14 @@ def test_dry_run_encodes_trains_every_arm_and_brings_back_loadable_checkpoints(s
     data = study.main(["--out", str(tmp_path / "out"), "--work", str(tmp_path / "work"), "--dry-run",
                        "--steps", "2", "1"])
     stages = data["stages"]
-    runs = [f"{arm}_{steps}" for steps in (2, 1) for arm in ("shortcut", "paper", "paper_boxattn")]
+    runs = [f"{arm}_{steps}" for steps in (2, 1) for arm in ("shortcut", "paper", "paper_boxattn", "paper_onsets")]
     assert all(stages[name]["status"] == "ok" for name in ["encode", *runs]), stages
     with tarfile.open(tmp_path / "out/gaia2_study.tar") as archive:
         archive.extractall(tmp_path / "back", filter="data")
     nets = {arm: checkpoint_nets(tmp_path / f"back/{arm}_2.ckpt", "latent_world_model", "world_model_ckpt")[0]["net"]
-            for arm in ("shortcut", "paper", "paper_boxattn")}
+            for arm in ("shortcut", "paper", "paper_boxattn", "paper_onsets")}
     assert nets["shortcut"].conditioner.agent_raster is not None
     assert nets["paper"].conditioner.agent_raster is None and not nets["paper"].agent_box_attention
     assert nets["paper_boxattn"].agent_box_attention and nets["paper_boxattn"].conditioner.agent_raster is None
+    assert nets["paper_onsets"].conditioner.agent_raster is None and not nets["paper_onsets"].agent_box_attention
     assert len(list((tmp_path / "out").iterdir())) <= 8

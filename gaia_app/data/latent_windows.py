@@ -17,7 +17,8 @@ or brake must produce from a context that does not (docs/paper_faithful.md, "Whe
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import json
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +68,23 @@ class LatentWindows(Dataset):
             return random_latent_window(clip, self.steps, self.metadata, self.random_window)
         start = int(torch.multinomial(self.start_weights[index], 1).item())
         return latent_window(clip, start, self.steps, self.metadata)
+
+
+def clips_where(folders: Sequence[Path], where: Mapping[str, Any], cache: Path) -> list[Path]:
+    """The clip folders whose conditions.json `meta` holds every key of `where` at its value (all of them when `where`
+    is empty; a clip without the key does not match). ClipError naming the cache when a key is in no clip's meta (a
+    misspelt key would otherwise select nothing, or everything) or when no clip matches."""
+    if not where:
+        return list(folders)
+    metas = [json.loads((f / "conditions.json").read_text()).get("meta") or {} for f in folders]
+    unknown = sorted(k for k in where if not any(k in m for m in metas))
+    if unknown:
+        raise ClipError(f"data.train_meta: key(s) {unknown} appear in no clip's meta under '{cache}' "
+                        f"(keys there: {sorted(set().union(*metas))})")
+    chosen = [f for f, m in zip(folders, metas, strict=True) if all(k in m and m[k] == v for k, v in where.items())]
+    if not chosen:
+        raise ClipError(f"data.train_meta={dict(where)}: none of the {len(folders)} clips under '{cache}' match")
+    return chosen
 
 
 def step_commands(clip: LatentClip) -> np.ndarray:
@@ -181,21 +199,26 @@ class LatentCacheDataModule(L.LightningDataModule):
         batch_size, num_workers: loader settings.
         window_sampling, change_after: how training windows start (`LatentWindows`; validation windows start at
             their clip's start).
+        train_meta: train only on the clips whose clip-level metadata holds every key at its value (`clips_where`),
+            e.g. {open_loop: true} for the clips driven off their policy; validation keeps every clip.
     """
 
     def __init__(self, path: str, steps: int = 4, metadata_fields: Sequence[str] = (), batch_size: int = 4,
-                 num_workers: int = 0, window_sampling: str = "uniform", change_after: int = 2):
+                 num_workers: int = 0, window_sampling: str = "uniform", change_after: int = 2,
+                 train_meta: Mapping[str, Any] | None = None):
         super().__init__()
         self.path, self.steps, self.metadata_fields = Path(path), steps, list(metadata_fields)
         self.batch_size, self.num_workers = batch_size, num_workers
         self.window_sampling, self.change_after = window_sampling, change_after
+        self.train_meta = dict(train_meta or {})
         self.train_set: LatentWindows | None = None
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:
             return
         encoder = MetadataEncoder(self.metadata_fields)
-        self.train_set = LatentWindows(find_latent_clips(self.path / "train"), self.steps, encoder, random_window=True,
+        train = clips_where(find_latent_clips(self.path / "train"), self.train_meta, self.path / "train")
+        self.train_set = LatentWindows(train, self.steps, encoder, random_window=True,
                                        window_sampling=self.window_sampling, change_after=self.change_after)
         self.val_set = LatentWindows(find_latent_clips(self.path / "val"), self.steps, encoder, random_window=False)
 

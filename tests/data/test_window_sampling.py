@@ -93,6 +93,33 @@ def test_datamodule_passes_the_sampling_to_training_windows_only(cache: Path) ->
     assert dm.train_set.start_weights is not None and dm.val_set.start_weights is None
 
 
+def test_train_meta_keeps_the_matching_training_clips_and_every_validation_clip(tmp_path: Path) -> None:
+    """data.train_meta={open_loop: true} trains on the clips driven off their policy alone (the onset arm's data)."""
+    for split in ("train", "val"):
+        for name, meta in (("driven", {"open_loop": True, "weather": "rain"}), ("policy", {"weather": "rain"})):
+            clip = clip_with_turn(f"{split}_{name}", 5)
+            clip.meta = meta
+            write_latent_clip(tmp_path / split, clip)
+    dm = LatentCacheDataModule(str(tmp_path), steps=4, train_meta={"open_loop": True})
+    dm.setup("fit")
+    assert [c.clip_id for c in dm.train_set.clips] == ["train_driven"]
+    assert sorted(c.clip_id for c in dm.val_set.clips) == ["val_driven", "val_policy"]
+    everything = LatentCacheDataModule(str(tmp_path), steps=4)
+    everything.setup("fit")
+    assert len(everything.train_set) == 2
+    with pytest.raises(ClipError, match=r"\['open_lop'\] appear in no clip's meta under .*train"):
+        LatentCacheDataModule(str(tmp_path), steps=4, train_meta={"open_lop": True}).setup("fit")
+    with pytest.raises(ClipError, match=r"train_meta=\{'weather': 'snow'\}: none of the 2 clips"):
+        LatentCacheDataModule(str(tmp_path), steps=4, train_meta={"weather": "snow"}).setup("fit")
+
+
+def test_the_onset_experiment_selects_the_open_loop_clips(tmp_path: Path) -> None:
+    from tests.conftest import compose_config
+
+    cfg = compose_config("train", ["experiment=gaia2/road_users/world_model_s4_paper_onsets"], tmp_path)
+    assert dict(cfg.data.train_meta) == {"open_loop": True} and cfg.data.window_sampling == "action_change"
+
+
 def test_bad_sampling_settings_are_named(cache: Path, tmp_path: Path) -> None:
     clips = find_latent_clips(cache / "train")
     with pytest.raises(ValueError, match="window_sampling='onsets'"):
