@@ -4,6 +4,7 @@ the reading of where a line through an arm's budgets in log FLOPs reaches a targ
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -39,9 +40,11 @@ def test_the_study_draws_both_figures_and_reads_every_arm_and_metric(tmp_path: P
     assert by_key[("GAIA-1", "paper", "curvature")] == "met"
     assert by_key[("GAIA-1", "paper", "speed")].startswith("≈")
     assert by_key[("GAIA-2", "paper", "agent ratio")] == "one budget"
-    # GAIA-2's onset arm: twice the budget takes its curvature off the floor, its agents do nothing at either
+    # GAIA-2's onset arm: more budget takes its curvature off the floor towards the target; its agents barely move
+    # (1.0× → 1.1×), so their line reaches 2× only thousands of times past the largest budget, or never
     assert by_key[("GAIA-2", "paper_onsets", "curvature")].startswith("≈")
-    assert by_key[("GAIA-2", "paper_onsets", "agent ratio")].startswith("flat")
+    agents = by_key[("GAIA-2", "paper_onsets", "agent ratio")]
+    assert agents.startswith("flat") or float(re.search(r"\((\d+)× the largest\)", agents)[1]) >= 1000, agents
     assert json.loads((tmp_path / "crossings.json").read_text()) == rows
 
 
@@ -65,9 +68,10 @@ def test_every_point_is_the_one_its_table_gives() -> None:
                 assert f"{mean:.3f} [{low:.3f}, {high:.3f}]" in section, (*where, key)
     speed = next(r for r in bench.crossings(study) if r["arm"] == "paper" and r["metric"] == "speed")
     assert speed["crossing"] == "≈ 3.0e+19 FLOPs (2387× the largest)" and "2 387× the GPU budget" in doc
-    # the GAIA-2 onset arm's curvature line, as the doc's table gives it (about 3.5× the CPU budget of 2.7e14)
+    # the GAIA-2 onset arm's curvature line through its three budgets, as the doc's table gives it (about 4.3× the
+    # CPU budget of 2.7e14)
     curvature = next(r for r in bench.crossings(study) if r["arm"] == "paper_onsets" and r["metric"] == "curvature")
-    assert curvature["crossing"] == "≈ 9.5e+14 FLOPs (2× the largest)" and "≈ 9.5e+14 FLOPs" in doc
+    assert curvature["crossing"] == "≈ 1.2e+15 FLOPs (1× the largest)" and "≈ 1.2e+15 FLOPs" in doc
 
 
 def section_of(doc: str, source: str) -> str:
