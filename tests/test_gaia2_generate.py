@@ -220,6 +220,12 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
                                                                    "model, selective CFG ×3, paired agent passes"})
         assert 0 <= row["iou_inside_boxes"] <= 1 and 0 <= row["agent_share_outside_boxes"] <= 1
         assert ("agent_share_outside_boxes_minus_plain" in row) == ("iou_agent_masks_minus_plain" in row)
+    # every model row other than the floor, paired with the floor by scene (the agent target's comparison)
+    assert {n for n, row in agents.items() if "iou_agent_masks_minus_dropped" in row} == {
+        n for n in agents if n.startswith("model, ") and n != "model, agents dropped"}
+    given = agents["model, agent conditions"]["iou_agent_masks_minus_dropped"]["mean"]
+    assert given == pytest.approx(agents["model, agent conditions"]["iou_agent_masks"]
+                                  - agents["model, agents dropped"]["iou_agent_masks"])
     paired = agents["model, selective CFG ×3"]["iou_agent_masks_minus_plain"]["mean"]
     assert paired == pytest.approx(agents["model, selective CFG ×3"]["iou_agent_masks"]
                                    - agents["model, plain CFG ×3"]["iou_agent_masks"])

@@ -18,8 +18,9 @@ conditioning boxes projected into each camera, for
     ..., paired agent passes    the same regions guided by the direction between a conditional and an unconditional
                                 pass over the agent tokens alone (the report's dual pass for the agent tokens only)
     model, agents dropped       generated with the agent condition dropped (the floor)
-Each IoU carries a 95 % interval (scenes resampled), and the guided rows their paired difference to plain CFG on the
-same scenes and noise.
+Each IoU carries a 95 % interval (scenes resampled), the guided rows their paired difference to plain CFG on the
+same scenes and noise, and every model row its paired difference to the agents-dropped row (the agent target's
+comparison: boxes given against dropped, issue 50).
 Action adherence (the front camera or the whole rig, `model.evaluate.probe_cameras`): GAIA-1's controllability
 protocol, contrast errors against a re-simulated ceiling, a floor with actions dropped and the real continuation
 (gaia_app/protocols/gaia2_actions.py).
@@ -152,9 +153,15 @@ def iou_rows(probe: Any, rows: dict[str, list[torch.Tensor]], truth: list[torch.
             if reference is not None and "CFG" in name and name != reference:
                 difference = ratio_interval(intersections, unions, minus=overlaps[reference][metric])
                 table[name][f"{metric}_minus_plain"] = difference.as_dict()
+    # the agent target compares boxes given with dropped; both rows share each scene's noise, so pair them by scene
+    dropped = overlaps.get(DROPPED_ROW)
+    for name in (n for n in overlaps if dropped is not None and n.startswith("model, ") and n != DROPPED_ROW):
+        table[name]["iou_agent_masks_minus_dropped"] = ratio_interval(
+            *overlaps[name]["iou_agent_masks"], minus=dropped["iou_agent_masks"]).as_dict()
     return table
 
 
+DROPPED_ROW = "model, agents dropped"  # the agent table's floor: generated with the agent condition dropped
 # the guided rows of the agent table: key → (row label before "×s", spatial, spatial_pass); "plain" first, the
 # reference every other guided row is differenced against
 GUIDED_VARIANTS = {"plain": ("plain CFG", False, "agent_tokens"),
@@ -194,7 +201,7 @@ def agent_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Syn
     if e.cfg_scale:
         rows.update({name: [] for name in guided})
     if unguided:
-        rows["model, agents dropped"] = []
+        rows[DROPPED_ROW] = []
     truth, boxes = [], []
     world, plain = pipeline.world, pipeline.world.guidance
     for sample, clip in tqdm(scenes, desc="agent control"):
@@ -206,7 +213,7 @@ def agent_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Syn
         shape = tuple(real.shape)
         noise_seed = int(torch.randint(2**31, (), generator=generator))
         runs = [("model, agent conditions", plain, ()), *((name, g, ()) for name, g in guided.items()),
-                ("model, agents dropped", plain, ("agents",))]
+                (DROPPED_ROW, plain, ("agents",))]
         for name, guidance, drop in runs:
             if name not in rows:
                 continue
@@ -323,10 +330,16 @@ def agent_markdown(agents: dict[str, Any], cameras: list[str]) -> list[str]:
              "| frames | IoU with agent masks ↑ | IoU with conditioning boxes ↑ | agent masks − plain CFG | "
              "IoU inside the boxes ↑ (− plain) | agent share outside the boxes ↓ (− plain) |",
              "|---|---:|---:|---:|---:|---:|"]
-    return lines + [f"| {name} | {iou_cell(row, 'iou_agent_masks')} | {iou_cell(row, 'iou_conditioning_boxes')} | "
-                    f"{difference_cell(row.get('iou_agent_masks_minus_plain'))} | "
-                    f"{region_cell(row, 'iou_inside_boxes')} | "
-                    f"{region_cell(row, 'agent_share_outside_boxes')} |" for name, row in agents["rows"].items()]
+    lines += [f"| {name} | {iou_cell(row, 'iou_agent_masks')} | {iou_cell(row, 'iou_conditioning_boxes')} | "
+              f"{difference_cell(row.get('iou_agent_masks_minus_plain'))} | "
+              f"{region_cell(row, 'iou_inside_boxes')} | "
+              f"{region_cell(row, 'agent_share_outside_boxes')} |" for name, row in agents["rows"].items()]
+    paired = [f"{name} {difference_cell(row['iou_agent_masks_minus_dropped'])}"
+              for name, row in agents["rows"].items() if "iou_agent_masks_minus_dropped" in row]
+    if paired:
+        lines += ["", "IoU with agent masks minus the agents-dropped row, paired by scene (same noise): "
+                  + "; ".join(paired)]
+    return lines
 
 
 def iou_cell(row: dict[str, Any], metric: str) -> str:
