@@ -226,6 +226,11 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     given = agents["model, agent conditions"]["iou_agent_masks_minus_dropped"]["mean"]
     assert given == pytest.approx(agents["model, agent conditions"]["iou_agent_masks"]
                                   - agents["model, agents dropped"]["iou_agent_masks"])
+    from gaia_app.protocols.gaia2_evaluate import agent_markdown
+
+    under_table = agent_markdown(results["agents"], ["front"])[-1]
+    assert under_table.startswith("IoU with agent masks minus the agents-dropped row, paired by scene")
+    assert f"model, agent conditions {given:+.3f} [" in under_table and "model, agents dropped " not in under_table
     paired = agents["model, selective CFG ×3"]["iou_agent_masks_minus_plain"]["mean"]
     assert paired == pytest.approx(agents["model, selective CFG ×3"]["iou_agent_masks"]
                                    - agents["model, plain CFG ×3"]["iou_agent_masks"])

@@ -138,6 +138,9 @@ def row_overlaps(probe: Any, videos: list[torch.Tensor], truth: list[torch.Tenso
                                                         [~b for b in boxes])}
 
 
+DROPPED_ROW = "model, agents dropped"  # the agent table's floor: generated with the agent condition dropped
+
+
 def iou_rows(probe: Any, rows: dict[str, list[torch.Tensor]], truth: list[torch.Tensor], boxes: list[torch.Tensor],
              reference: str | None) -> dict[str, dict[str, Any]]:
     """Per row: the pooled IoU with the true agent masks and with the box masks, each with its interval over scenes,
@@ -154,14 +157,14 @@ def iou_rows(probe: Any, rows: dict[str, list[torch.Tensor]], truth: list[torch.
                 difference = ratio_interval(intersections, unions, minus=overlaps[reference][metric])
                 table[name][f"{metric}_minus_plain"] = difference.as_dict()
     # the agent target compares boxes given with dropped; both rows share each scene's noise, so pair them by scene
-    dropped = overlaps.get(DROPPED_ROW)
-    for name in (n for n in overlaps if dropped is not None and n.startswith("model, ") and n != DROPPED_ROW):
-        table[name]["iou_agent_masks_minus_dropped"] = ratio_interval(
-            *overlaps[name]["iou_agent_masks"], minus=dropped["iou_agent_masks"]).as_dict()
+    if DROPPED_ROW in overlaps:
+        dropped = overlaps[DROPPED_ROW]["iou_agent_masks"]
+        for name in (n for n in overlaps if n.startswith("model, ") and n != DROPPED_ROW):
+            table[name]["iou_agent_masks_minus_dropped"] = ratio_interval(
+                *overlaps[name]["iou_agent_masks"], minus=dropped).as_dict()
     return table
 
 
-DROPPED_ROW = "model, agents dropped"  # the agent table's floor: generated with the agent condition dropped
 # the guided rows of the agent table: key → (row label before "×s", spatial, spatial_pass); "plain" first, the
 # reference every other guided row is differenced against
 GUIDED_VARIANTS = {"plain": ("plain CFG", False, "agent_tokens"),
