@@ -19,7 +19,9 @@ SSIM and motion statistics, FVMD).
 
 The action probe is trained once per run (about half its time on a CPU) and saved to `--out`/action_probe; `--probe
 <that folder>` loads it in a later run instead (protocols/gaia2_action_probe.py: it must read the same rig, size,
-rate, cameras and stride, and come from another world than the one scored).
+rate, cameras and stride, and come from another world than the one scored). With `model.evaluate.speed_probe=twin`
+the speed contrast is read by the twin probe (protocols/gaia2_twin_probe.py), trained once and saved to
+`--out`/twin_probe, or loaded with `model.evaluate.twin_probe=<folder>`.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from gaia_app.protocols.controllability import CONTRASTS
 from gaia_app.protocols.fidelity import check_metrics
 from gaia_app.protocols.gaia2_action_probe import action_probe
 from gaia_app.protocols.gaia2_evaluate import fidelity_table, rig_samples
+from gaia_app.protocols.gaia2_twin_probe import twin_probe
 from gaia_app.protocols.loading import load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
 
@@ -110,16 +113,19 @@ def adherence(folders: list[str], overrides: list[str], scales: list[float] | No
     frames = cfg.model.steps * next(iter(pipelines.values())).temporal
     started = time.perf_counter()
     probe, fit = action_probe(cfg, frames, probe_to) if "actions" in tables else (None, None)
+    twin, twin_fit = (twin_probe(cfg, frames, probe_to.parent / "twin_probe" if probe_to else None)
+                      if "actions" in tables else (None, None))
     samples = rig_samples(cfg, cfg.context.seed, cfg.model.evaluate.contexts, frames)
     actions, fidelities, ceilings = {}, {}, {}  # the real continuations are rendered once for every variant
     for name, pipeline in pipelines.items():
         scenes = [(s, cut_steps(pipeline.encode(s.clip), cfg.model.steps)) for s in samples]
         generator = torch.Generator().manual_seed(int(cfg.seed))  # the same noise for every folder and scale
         if "actions" in tables:
-            actions[name] = gaia2_actions.action_table(cfg, pipeline, scenes, probe, generator, ceilings)
+            actions[name] = gaia2_actions.action_table(cfg, pipeline, scenes, probe, generator, ceilings, twin)
         if "fidelity" in tables:
             fidelities[name] = fidelity_table(cfg, pipeline, scenes, None, torch.Generator().manual_seed(int(cfg.seed)))
-    return {"probe_fit": fit, "seconds": time.perf_counter() - started, "overrides": overrides, "scales": scales,
+    return {"probe_fit": fit, **({"twin_probe_fit": twin_fit} if twin_fit else {}),
+            "seconds": time.perf_counter() - started, "overrides": overrides, "scales": scales,
             "intervals": intervals,
             "tables": actions, **({"fidelity": fidelities} if "fidelity" in tables else {})}
 

@@ -7,7 +7,10 @@ docs/paper_faithful.md tabulates (docs/paper_faithful_study.json).
 
 GAIA-1: speed and curvature contrast errors (95 % intervals over contexts) and the share of prompted rollouts read as
 "night" / "snow" (Wilson intervals; the unprompted share beside it) against training FLOPs, with the targets.
-GAIA-2: the same contrast errors, agent IoU with the boxes given and dropped (95 % over scenes), and their ratio.
+GAIA-2: the same contrast errors, agent IoU with the boxes given and dropped (95 % over scenes), and their ratio;
+and the speed contrast error read by the twin probe (`speed_twin`, points that have it; its own target
+`targets.speed_twin`, docs section `speed_twin_source`): the pair probe fails its own check on every GAIA-2 world
+scored, the twin probe passes it (docs/latent_world_model.md, "Action adherence").
 
 The printed table says, per arm and metric, where a line through the arm's scored budgets in log FLOPs crosses the
 target: "met" when its largest budget meets it already, "moving away" when the line leaves the target, "one budget"
@@ -58,6 +61,8 @@ def load_study(path: str | Path = STUDY) -> dict[str, Any]:
                 raise ValueError(f"{path}: {family}.points[{i}].arm={point['arm']!r}; expected one of {list(ARMS)}")
             if not float(point["flops"]) > 0:
                 raise ValueError(f"{path}: {family}.points[{i}].flops={point['flops']!r}; expected > 0")
+            if "speed_twin" in point and "speed_twin" not in study[family]["targets"]:
+                raise ValueError(f"{path}: {family}.points[{i}] has speed_twin, {family}.targets has no speed_twin")
     return study
 
 
@@ -89,15 +94,17 @@ def drawn_flops(points: list[dict[str, Any]], arm: str) -> list[float]:
     return [p["flops"] * DODGE[arm] for p in points]
 
 
-def error_panel(ax: Axes, points: list[dict[str, Any]], metric: str, target: float, unit: str) -> None:
-    """Contrast error (mean ± 95 % half-width) against FLOPs per arm, with the target line."""
+def error_panel(ax: Axes, points: list[dict[str, Any]], metric: str, target: float, unit: str,
+                title: str | None = None) -> None:
+    """Contrast error (mean ± 95 % half-width) against FLOPs per arm (the points that have `metric`), with the target
+    line."""
     for arm, (color, name) in ARMS.items():
-        ps = arm_points(points, arm)
+        ps = [p for p in arm_points(points, arm) if metric in p]
         if ps:
             ax.errorbar(drawn_flops(ps, arm), [p[metric][0] for p in ps], yerr=[p[metric][1] for p in ps],
                         color=color, marker="o", capsize=3, label=name)
     ax.axhline(target, color="tab:green", linestyle="--", label=f"target ≤ {target:g}")
-    ax.set_title(f"{metric} contrast error ({unit}) ↓")
+    ax.set_title(f"{title or metric} contrast error ({unit}) ↓")
 
 
 def text_panel(ax: Axes, points: list[dict[str, Any]], target: float, floor: float) -> None:
@@ -164,17 +171,21 @@ def finish(fig: Figure, axes: Sequence[Axes], family: dict[str, Any], name: str)
 
 def control_figure(family: dict[str, Any], name: str) -> Figure:
     """Speed and curvature contrast errors, then text adherence (GAIA-1) or agent IoU and its ratio (GAIA-2)."""
-    gaia1 = name == "GAIA-1"
-    fig = Figure(figsize=(15 if gaia1 else 20, 4.5))
-    axes = fig.subplots(1, 3 if gaia1 else 4)
+    gaia1, twin = name == "GAIA-1", "speed_twin" in family["targets"]
+    panels = 3 if gaia1 else 4 + twin
+    fig = Figure(figsize=(5 * panels, 4.5))
+    axes = list(fig.subplots(1, panels))
     points, targets = family["points"], family["targets"]
-    error_panel(axes[0], points, "speed", targets["speed"], "m/s")
+    error_panel(axes[0], points, "speed", targets["speed"], "m/s",
+                "speed (pair probe: fails its check)" if twin else None)
+    if twin:
+        error_panel(axes.pop(1), points, "speed_twin", targets["speed_twin"], "m/s", "speed (twin probe)")
     error_panel(axes[1], points, "curvature", targets["curvature"], "1/m")
     if gaia1:
         text_panel(axes[2], points, targets["prompted"], targets["unprompted"])
     else:
         agent_panels(axes[2], axes[3], points, targets["agent_ratio"])
-    return finish(fig, axes, family, name)
+    return finish(fig, fig.axes, family, name)
 
 
 def crossings(study: dict[str, Any]) -> list[dict[str, str]]:
@@ -200,6 +211,13 @@ def crossings(study: dict[str, Any]) -> list[dict[str, str]]:
                 rows.append({"family": family_name, "arm": arm, "metric": metric,
                              "values": " → ".join(f"{v:.4g}" for v in values), "target": f"{target:g}",
                              "crossing": crossing(flops, values, target, lower)})
+            read = [p for p in ps if "speed_twin" in p]  # the budgets the twin probe has read
+            if read:
+                values = [p["speed_twin"][0] for p in read]
+                rows.append({"family": family_name, "arm": arm, "metric": "speed (twin probe)",
+                             "values": " → ".join(f"{v:.4g}" for v in values),
+                             "target": f"{targets['speed_twin']:g}",
+                             "crossing": crossing([p["flops"] for p in read], values, targets["speed_twin"], True)})
     return rows
 
 

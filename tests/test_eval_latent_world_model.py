@@ -96,6 +96,34 @@ def test_gaia2_probe_quality_scores_the_ceiling_against_the_reference() -> None:
 
 
 @BENCHMARK_SCRIPT
+def test_gaia2_action_adherence_reads_speed_with_the_twin_probe(tmp_path) -> None:
+    """model.evaluate.speed_probe=twin: the speed contrast is the twin probe's reading, the pair probe's is kept, and
+    rows whose futures ignore the command (floor, reference) read exactly 0 of it; the twin probe is saved with the run
+    and a later run loads it and reads the same."""
+    from gaia_app.protocols import gaia2_twin_probe
+
+    module = load_benchmark("gaia2_action_adherence")
+    tiny = ["model.evaluate.contexts=1", "model.evaluate.probe_clips=2", "model.evaluate.probe_steps=2",
+            "model.sampler.steps=2", "model.guidance.conditions=[action]", "model.steps=3",
+            "model.evaluate.speed_probe=twin"]
+    result = module.main(["--weights", "gaia2", "--out", str(tmp_path / "out"), "--", *tiny])
+    table = result["tables"]["gaia2"]
+    assert table["speed_probe"] == "twin" and "fit" in result["twin_probe_fit"]
+    for name, row in table["rows"].items():
+        assert {"speed_contrast", "speed_contrast_pair"} <= set(row) and "speed_contrast_pair" in row["realised"]
+        if name in ("floor", "reference"):
+            realised = row["realised"]["speed_contrast"]
+            assert realised["mean"] == 0 and row["speed_contrast"]["mean"] == pytest.approx(realised["commanded"])
+    assert "read by the twin probe" in (tmp_path / "out" / "action_adherence.md").read_text()
+    saved = tmp_path / "out" / "twin_probe"
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(gaia2_twin_probe, "train_twin_probe", lambda *a, **k: pytest.fail("trained a second probe"))
+        again = module.main(["--weights", "gaia2", "--probe", str(tmp_path / "out" / "action_probe"), "--", *tiny,
+                             f"model.evaluate.twin_probe={saved}"])
+    assert again["tables"]["gaia2"]["rows"]["ceiling"] == table["rows"]["ceiling"]
+
+
+@BENCHMARK_SCRIPT
 def test_gaia2_action_adherence_scores_folders_and_scales_side_by_side_on_one_probe(tmp_path) -> None:
     """benchmarks/gaia2_action_adherence.py: every folder × guidance scale is scored on one probe with the same scenes
     and noise: a copy of the shipped folder gets the same table as the original, another guidance scale and (in the

@@ -206,7 +206,7 @@ def test_bad_added_agents_are_named(checkpoints, tmp_path: Path) -> None:
 def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> None:
     # model.steps=3: two context steps and one generated latent step (4 frames), half the rollouts
     results = run(checkpoints, tmp_path, "evaluate", "model.evaluate.contexts=2", "model.evaluate.probe_clips=2",
-                  "model.evaluate.probe_steps=3", "model.steps=3")
+                  "model.evaluate.probe_steps=3", "model.steps=3", "model.evaluate.speed_probe=twin")
     assert set(results["agents"]["rows"]) == {"real frames", "tokenized real", "model, agent conditions",
                                               "model, plain CFG ×3", "model, selective CFG ×3",
                                               "model, selective CFG ×3, full second pass",
@@ -263,6 +263,13 @@ def test_gaia2_evaluation_writes_both_tables(checkpoints, tmp_path: Path) -> Non
     # the action probe is saved with the run, for later runs to load (model.evaluate.action_probe)
     saved = yaml.safe_load((tmp_path / "action_probe" / "action_probe.yaml").read_text())
     assert saved["probe_steps"] == 3 and saved["fit"] == results["probe_fit"]["action_probe"]
+    # speed_probe=twin: the speed contrast read by the twin probe (saved too), the pair probe's kept beside it; the
+    # floor's futures ignore the command, so the twin probe reads none of it
+    twin = yaml.safe_load((tmp_path / "twin_probe" / "twin_probe.yaml").read_text())
+    assert twin["fit"] == results["probe_fit"]["twin_probe"] and actions["speed_probe"] == "twin"
+    floor = actions["rows"]["floor"]
+    assert "speed_contrast_pair" in floor and floor["realised"]["speed_contrast"]["mean"] == 0
+    assert "Speed contrast read by the twin probe" in table
 
     # one table with a GAIA-1 evaluation run (its evaluation.json layout, protocols/evaluate.py)
     gaia1 = tmp_path / "gaia1"

@@ -43,6 +43,8 @@ def test_the_study_draws_both_figures_and_reads_every_arm_and_metric(tmp_path: P
     # GAIA-2's onset arm: more budget takes its curvature off the floor towards the target; its agents barely move
     # (1.0× → 1.1×), so their line reaches 2× only thousands of times past the largest budget, or never
     assert by_key[("GAIA-2", "paper_onsets", "curvature")].startswith("≈")
+    # read by the twin probe (which passes its check), the onset arm's speed error is still far above its target
+    assert by_key[("GAIA-2", "paper_onsets", "speed (twin probe)")].startswith("≈")
     agents = by_key[("GAIA-2", "paper_onsets", "agent ratio")]
     assert agents.startswith("flat") or float(re.search(r"\((\d+)× the largest\)", agents)[1]) >= 1000, agents
     assert json.loads((tmp_path / "crossings.json").read_text()) == rows
@@ -66,6 +68,13 @@ def test_every_point_is_the_one_its_table_gives() -> None:
                 assert f"{prompted:.2f} / {unprompted:.2f}" in section, (*where, prompt)
             for key, (mean, low, high) in point.get("agent_iou", {}).items():
                 assert f"{mean:.3f} [{low:.3f}, {high:.3f}]" in section, (*where, key)
+    # the twin probe's speed readings (GAIA-2) sit in the section that reports them
+    twin_section = section_of(doc, study["gaia2"]["speed_twin_source"])
+    read = [p for p in study["gaia2"]["points"] if "speed_twin" in p]
+    assert len(read) == 3 and f"{study['gaia2']['targets']['speed_twin']:.3f}" in twin_section
+    for point in read:
+        mean, half = point["speed_twin"]
+        assert f"{mean:.3f} ± {half:.3f}" in twin_section, (point["arm"], point["budget"], "speed_twin")
     speed = next(r for r in bench.crossings(study) if r["arm"] == "paper" and r["metric"] == "speed")
     assert speed["crossing"] == "≈ 3.0e+19 FLOPs (2387× the largest)" and "2 387× the GPU budget" in doc
     # the GAIA-2 onset arm's curvature line through its three budgets, as the doc's table gives it (about 4.3× the
@@ -98,4 +107,9 @@ def test_a_point_without_a_field_is_refused_by_name(tmp_path: Path) -> None:
     path = tmp_path / "study.json"
     path.write_text(json.dumps(study))
     with pytest.raises(ValueError, match=r"gaia2\.points\[1\] lacks \['agent_iou'\]"):
+        bench.load_study(path)
+    study = json.loads(bench.STUDY.read_text())
+    del study["gaia2"]["targets"]["speed_twin"]
+    path.write_text(json.dumps(study))
+    with pytest.raises(ValueError, match=r"gaia2\.points\[\d\] has speed_twin, gaia2\.targets has no speed_twin"):
         bench.load_study(path)

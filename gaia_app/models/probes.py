@@ -117,6 +117,43 @@ class InverseDynamicsProbe(nn.Module):
         return nn.functional.smooth_l1_loss(self(pair) * scale, actions * scale)
 
 
+class TwinDisplacementProbe(InverseDynamicsProbe):
+    """Two futures of one scene seen at the same instant → how much further (m, along the route) the ego of the
+    second has travelled than the ego of the first.
+
+    The inverse-dynamics probe reads speed from the motion between two frames of one clip: at 12.5 Hz and stride 2 a
+    2 m/s speed difference moves the image by about a pixel, and the probe reads about half of an accelerate − brake
+    contrast (docs/latent_world_model_notes.md, "Why the speed probe reads about half…"). Two futures of one context
+    that differ only in their speed command drift apart by metres over the horizon, and seen at the same instant the
+    rest of the world (the other road users) is where it is in both, so their frames differ only by the ego's
+    displacement. Same encoder and cost volumes as the inverse-dynamics probe; the output is antisymmetric,
+    ½ (g(a, b) − g(b, a)), so identical futures read exactly 0 and swapping them negates the reading.
+
+    pair: (b, 2, k, 3, H, W) for k = `cameras` (or (b, 2, 3, H, W) for one camera), the first future first → (b,) m.
+    """
+
+    def __init__(self, widths: Sequence[int] = (64, 96, 128), grid: tuple[int, int] = (2, 4), hidden: int = 128,
+                 radius: int = 3, cameras: int = 1):
+        super().__init__(widths, grid, hidden, radius, cameras)
+        self.head[-1] = nn.Linear(hidden, 1)
+
+    def forward(self, pair: torch.Tensor) -> torch.Tensor:
+        if self.cameras == 1 and pair.dim() == 5:
+            pair = pair.unsqueeze(2)
+        if pair.dim() != 6 or pair.shape[2] != self.cameras:
+            raise ValueError(f"TwinDisplacementProbe({self.cameras} camera(s)): expected pairs "
+                             f"(b, 2, {self.cameras}, 3, H, W), got {tuple(pair.shape)}")
+        both = torch.cat([pair, pair.flip(1)])  # (2b, 2, k, 3, H, W): each pair in both orders, one batch
+        views = rearrange(both, "b t k c h w -> (b k) t c h w")
+        encoded = rearrange(self.encoder(self.features(views)), "(b k) d -> b (k d)", k=self.cameras)
+        forward, backward = self.head(encoded)[:, 0].chunk(2)
+        return 0.5 * (forward - backward)
+
+    def loss(self, pair: torch.Tensor, displacement: torch.Tensor) -> torch.Tensor:
+        """Smooth-L1 (m) against the true displacement (b,) of the second future over the first."""
+        return nn.functional.smooth_l1_loss(self(pair), displacement)
+
+
 class SceneAttributeProbe(nn.Module):
     """One frame → logits per attribute of `ATTRIBUTES` (weather, time of day, traffic light)."""
 

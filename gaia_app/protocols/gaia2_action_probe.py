@@ -15,6 +15,7 @@ from typing import Any
 
 import yaml
 from omegaconf import DictConfig
+from torch import nn
 
 from gaia_app.data.synthetic.rig import resolve_camera_names
 from gaia_app.models.probes import InverseDynamicsProbe
@@ -50,34 +51,44 @@ def save_action_probe(folder: str | Path, probe: InverseDynamicsProbe, info: dic
 def load_action_probe(folder: str | Path, cfg: DictConfig, frames: int) -> tuple[InverseDynamicsProbe, dict[str, Any]]:
     """The probe saved in `folder` and its info; FileNotFoundError or ValueError naming the file and the setting that
     does not fit this run (MUST_MATCH, or a probe trained on the world this run scores)."""
+    views = probe_views(cfg)
+    probe = InverseDynamicsProbe(cameras=len(views) if views else 1)
+    saved = load_saved_probe(probe, Path(folder), (WEIGHTS, INFO), "action_probe", probe_info(cfg, frames),
+                             MUST_MATCH, int(cfg.context.seed))
+    return probe.eval(), saved
+
+
+def load_saved_probe(probe: nn.Module, folder: Path, files: tuple[str, str], setting: str, wanted: dict[str, Any],
+                     must_match: tuple[str, ...], scored_world: int) -> dict[str, Any]:
+    """Load into `probe` the weights saved in `folder` as files (weights, info) by a run whose probe_info is
+    `wanted`, and return that info: FileNotFoundError naming `model.evaluate.<setting>` and the missing file,
+    ValueError naming the file and the setting of `must_match` that differs, the world when the probe was trained on
+    `scored_world`, or weights this version's probe cannot take."""
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 
-    folder = Path(folder)
-    for path in (folder / WEIGHTS, folder / INFO):
+    weights, info = (folder / name for name in files)
+    for path in (weights, info):
         if not path.is_file():
-            raise FileNotFoundError(f"model.evaluate.action_probe={folder}: {path.name} is missing (leave it null to "
-                                    "train the probe; a run saves it as action_probe/)")
-    saved = yaml.safe_load((folder / INFO).read_text()) or {}
-    wanted = probe_info(cfg, frames)
-    for key in MUST_MATCH:
+            raise FileNotFoundError(f"model.evaluate.{setting}={folder}: {path.name} is missing (leave it null to "
+                                    f"train the probe; a run saves it as {setting}/)")
+    saved = yaml.safe_load(info.read_text()) or {}
+    for key in must_match:
         if saved.get(key) != wanted[key]:
-            raise ValueError(f"{folder / INFO}: the probe was trained for {key}={saved.get(key)!r}, this run needs "
+            raise ValueError(f"{info}: the probe was trained for {key}={saved.get(key)!r}, this run needs "
                              f"{wanted[key]!r}")
-    if saved.get("probe_seed") == int(cfg.context.seed):
-        raise ValueError(f"{folder / INFO}: the probe was trained on world {saved['probe_seed']}, the world this run "
+    if saved.get("probe_seed") == scored_world:
+        raise ValueError(f"{info}: the probe was trained on world {saved['probe_seed']}, the world this run "
                          f"scores (context.seed); use a probe of another world")
     try:
-        state = load_file(str(folder / WEIGHTS))
+        state = load_file(str(weights))
     except (SafetensorError, OSError) as error:
-        raise ValueError(f"{folder / WEIGHTS}: not a readable safetensors file ({error})") from error
-    views = probe_views(cfg)
-    probe = InverseDynamicsProbe(cameras=len(views) if views else 1)
+        raise ValueError(f"{weights}: not a readable safetensors file ({error})") from error
     try:
         probe.load_state_dict(state)
     except RuntimeError as error:
-        raise ValueError(f"{folder / WEIGHTS}: does not match this version's action probe ({error})") from error
-    return probe.eval(), saved
+        raise ValueError(f"{weights}: does not match this version's {setting.replace('_', ' ')} ({error})") from error
+    return saved
 
 
 def action_probe(cfg: DictConfig, frames: int,

@@ -149,8 +149,10 @@ def resimulated(cfg: DictConfig, index: int, actions: np.ndarray) -> Clip:
 
 def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
                  probe: InverseDynamicsProbe, generator: torch.Generator,
-                 ceilings: dict[tuple[int, bytes], Clip] | None = None) -> dict[str, Any]:
-    """Rows, targets and probe checks of the action-adherence table (module docstring).
+                 ceilings: dict[tuple[int, bytes], Clip] | None = None, twin: Any = None) -> dict[str, Any]:
+    """Rows, targets and probe checks of the action-adherence table (module docstring). With `twin` (a
+    TwinDisplacementProbe, `model.evaluate.speed_probe=twin`) the speed contrast is read by it
+    (protocols/gaia2_twin_probe.py), the pair probe's reading kept as `speed_contrast_pair`.
 
     ceilings: a dict shared by tables of the same scenes (benchmarks/gaia2_action_adherence.py compares weights and
     guidance scales): a re-simulated real continuation depends on its scene and actions only, so each is rendered
@@ -193,14 +195,20 @@ def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Sy
     videos["floor"] = videos["floor"] * len(commands)
     videos["reference"] = list(contexts.frames) * len(commands)
     # scored: pairs (i − stride, i) of generated frames only, i = first + stride … f − 1
-    rows = {name: error_row(probe, torch.stack(video), commanded, first + stride, len(commands), stride,
-                            draws if name in SAMPLED else 1)
-            for name, video in videos.items()}
+    stacked = {name: torch.stack(video) for name, video in videos.items()}
+    row_draws = {name: draws if name in SAMPLED else 1 for name in stacked}
+    rows = {name: error_row(probe, video, commanded, first + stride, len(commands), stride, row_draws[name])
+            for name, video in stacked.items()}
+    if twin is not None:
+        from gaia_app.protocols.gaia2_twin_probe import read_speed_with_twins  # it builds on this module
+
+        read_speed_with_twins(rows, stacked, twin, commanded, first, stride, len(commands), pairs[0], rate, row_draws)
     contrasted = {metric: ["/".join(commands[high]), "/".join(commands[low])]
                   for metric, (high, low) in zip(CONTRASTS, pairs)}
     return {"scenes": n, "commands": [list(cmd) for cmd in commands], "agents": g.evaluate.action_agents,
             "context_frames": first, "probe_stride": stride, "noise_draws": draws,
             "probe_cameras": g.evaluate.probe_cameras, "scored_steps": frames - first - stride, "rows": rows,
+            "speed_probe": "pair" if twin is None else "twin",
             "contrasts": contrasted, "checks": action_checks(rows)}
 
 
@@ -223,5 +231,8 @@ def markdown(actions: dict[str, Any]) -> list[str]:
              f"{actions.get('noise_draws', 1)} sampled future(s) per scene and command (a scene's score: their mean); "
              "± 95 % interval over scenes. Contrast error: |probed "
              f"difference − commanded difference| of the horizon-mean speed ({speed}) and curvature ({curvature}) of "
-             "two futures of one scene; MAE: mean |probed − commanded| (diagnostic)", "",
+             "two futures of one scene; MAE: mean |probed − commanded| (diagnostic)"
+             + (". Speed contrast read by the twin probe (the two futures' frames side by side at the same instant, "
+                "protocols/gaia2_twin_probe.py); the pair probe's in the JSON as speed_contrast_pair"
+                if actions.get("speed_probe") == "twin" else ""), "",
              *action_rows_markdown(actions, ROWS)]

@@ -63,6 +63,7 @@ from gaia_app.pipelines.gaia2_world_model import Guidance
 from gaia_app.protocols import gaia2_actions
 from gaia_app.protocols.fidelity import check_metrics, feature_metrics, held_frame, score
 from gaia_app.protocols.gaia2_action_probe import action_probe
+from gaia_app.protocols.gaia2_twin_probe import twin_probe
 from gaia_app.protocols.loading import load_gaia2
 from gaia_app.utils.run_dir import atomic_write_text
 
@@ -105,14 +106,17 @@ def train_segmentation_probe(cfg: DictConfig, frames: int) -> tuple[Any, dict[st
 
 
 def train_probes_for(cfg: DictConfig, frames: int, run_dir: Path | None = None) -> tuple[Any, Any, dict[str, Any]]:
-    """The agent segmentation probe (train_segmentation_probe) and the inverse-dynamics probe (the front camera or
-    the rig: `model.evaluate.action_probe` loaded, or trained and saved to `run_dir`/action_probe;
-    protocols/gaia2_action_probe.py)."""
+    """The agent segmentation probe (train_segmentation_probe) and the action table's probes: the inverse-dynamics
+    probe (the front camera or the rig: `model.evaluate.action_probe` loaded, or trained and saved to
+    `run_dir`/action_probe; protocols/gaia2_action_probe.py) and, with `model.evaluate.speed_probe=twin`, the twin
+    probe (`model.evaluate.twin_probe` or `run_dir`/twin_probe; protocols/gaia2_twin_probe.py), else None."""
     segmentation, agent_fit = train_segmentation_probe(cfg, frames)
     dynamics, action_info = action_probe(cfg, frames, None if run_dir is None else run_dir / "action_probe")
-    return segmentation, dynamics, {"agent_probe": agent_fit, "action_probe": action_info.get("fit"),
-                                    **({"action_probe_from": action_info["loaded_from"]}
-                                       if "loaded_from" in action_info else {})}
+    twin, twin_info = twin_probe(cfg, frames, None if run_dir is None else run_dir / "twin_probe")
+    return segmentation, (dynamics, twin), {
+        "agent_probe": agent_fit, "action_probe": action_info.get("fit"),
+        **({"action_probe_from": action_info["loaded_from"]} if "loaded_from" in action_info else {}),
+        **({"twin_probe": twin_info.get("fit"), "twin_probe_from": twin_info.get("loaded_from")} if twin_info else {})}
 
 
 def scene_overlaps(predicted: list[torch.Tensor], masks: list[torch.Tensor],
@@ -374,14 +378,15 @@ def gaia2_evaluate(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     gaia2_actions.probe_mirror(cfg)
     pipeline = load_gaia2(cfg)
     frames = cfg.model.steps * pipeline.temporal
-    segmentation, dynamics, fit = train_probes_for(cfg, frames, run_dir)
+    segmentation, (dynamics, twin), fit = train_probes_for(cfg, frames, run_dir)
     scenes = [(s, cut_steps(pipeline.encode(s.clip), cfg.model.steps))
               for s in rig_samples(cfg, cfg.context.seed, e.contexts, frames)]
     generator = torch.Generator().manual_seed(int(cfg.seed))
     fidelity = fidelity_table(cfg, pipeline, scenes, segmentation, generator)
     agents, shared = agent_table(cfg, pipeline, scenes, segmentation, generator)
     results = {"cameras": [c.name for c in scenes[0][1].cameras], "probe_fit": fit, "fidelity": fidelity,
-               "agents": agents, "actions": gaia2_actions.action_table(cfg, pipeline, scenes, dynamics, generator),
+               "agents": agents, "actions": gaia2_actions.action_table(cfg, pipeline, scenes, dynamics, generator,
+                                                                     twin=twin),
                "cross_view": cross_view_table(cfg, pipeline, scenes, shared, generator)}
     atomic_write_text(run_dir / "gaia2_evaluation.json", json.dumps(results, indent=2))
     table = markdown(results)
