@@ -44,7 +44,7 @@ from gaia_app.data.synthetic.rig import resolve_camera_names
 from gaia_app.data.synthetic.scenario import Scenario
 from gaia_app.data.transforms import to_float
 from gaia_app.eval.controllability import contrast_pairs, probe_clips, train_probes
-from gaia_app.models.probes import InverseDynamicsProbe
+from gaia_app.models.probes import InverseDynamicsProbe, TwinDisplacementProbe
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline, with_labels
 from gaia_app.protocols.controllability import (
     CONTRASTS,
@@ -149,7 +149,8 @@ def resimulated(cfg: DictConfig, index: int, actions: np.ndarray) -> Clip:
 
 def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
                  probe: InverseDynamicsProbe, generator: torch.Generator,
-                 ceilings: dict[tuple[int, bytes], Clip] | None = None, twin: Any = None) -> dict[str, Any]:
+                 ceilings: dict[tuple[int, bytes], Clip] | None = None,
+                 twin: TwinDisplacementProbe | None = None) -> dict[str, Any]:
     """Rows, targets and probe checks of the action-adherence table (module docstring). With `twin` (a
     TwinDisplacementProbe, `model.evaluate.speed_probe=twin`) the speed contrast is read by it
     (protocols/gaia2_twin_probe.py), the pair probe's reading kept as `speed_contrast_pair`.
