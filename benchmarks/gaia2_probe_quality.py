@@ -77,7 +77,7 @@ def probe_quality(overrides: list[str], twin_to: Path | None = None) -> dict[str
         fit = {**fit, "twin_probe": twin_fit.get("fit")}
     metrics = [*CONTRASTS, *(["speed_contrast_pair"] if twin is not None else [])]
     out = {m: {name: rows[name][m]["mean"] for name in videos} for m in metrics}
-    for values in out.values():  # every metric's
+    for values in out.values():
         values["ratio"] = values["ceiling"] / values["reference"]
         values["target"] = values["reference"] - 0.5 * (values["reference"] - values["ceiling"])  # floor = reference
     out["fit"] = {**fit, "seconds": time.perf_counter() - started}

@@ -38,14 +38,16 @@ def probe_info(cfg: DictConfig, frames: int) -> dict[str, Any]:
             "probe_driven_share": float(e.probe_driven_share), "seed": int(cfg.seed)}
 
 
-def save_action_probe(folder: str | Path, probe: InverseDynamicsProbe, info: dict[str, Any]) -> None:
-    """Write `probe` and `info` (probe_info plus its fit) into `folder`, each file atomically."""
+def save_action_probe(folder: str | Path, probe: nn.Module, info: dict[str, Any],
+                      files: tuple[str, str] = (WEIGHTS, INFO)) -> None:
+    """Write `probe` (weights only) and `info` (probe_info plus its fit) into `folder` as files (weights, info), each
+    atomically; the twin probe (protocols/gaia2_twin_probe.py) is saved the same way under its own names."""
     from safetensors.torch import save as save_tensors
 
     folder = Path(folder)
     state = {key: value.contiguous() for key, value in probe.state_dict().items()}
-    atomic_write_bytes(folder / WEIGHTS, save_tensors(state))
-    atomic_write_text(folder / INFO, yaml.safe_dump(info, sort_keys=False))
+    atomic_write_bytes(folder / files[0], save_tensors(state))
+    atomic_write_text(folder / files[1], yaml.safe_dump(info, sort_keys=False))
 
 
 def load_action_probe(folder: str | Path, cfg: DictConfig, frames: int) -> tuple[InverseDynamicsProbe, dict[str, Any]]:

@@ -32,7 +32,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import yaml
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
@@ -44,9 +43,9 @@ from gaia_app.eval.controllability import augment_pairs, jitter, strided_actions
 from gaia_app.eval.intervals import mean_interval
 from gaia_app.models.probes import TwinDisplacementProbe
 from gaia_app.protocols.controllability import UNIFORM_MIX, by_context
-from gaia_app.protocols.gaia2_action_probe import load_saved_probe
+from gaia_app.protocols.gaia2_action_probe import load_saved_probe, save_action_probe
+from gaia_app.protocols.gaia2_action_probe import probe_info as action_probe_info
 from gaia_app.protocols.gaia2_actions import probe_mirror, probe_views, rig_world
-from gaia_app.utils.run_dir import atomic_write_bytes, atomic_write_text
 
 SPEED_PROBES = ("pair", "twin")  # what reads the action table's speed contrast
 WEIGHTS, INFO = "twin_probe.safetensors", "twin_probe.yaml"
@@ -143,21 +142,10 @@ def train_twin_probe(data: Twins, steps: int, batch: int = 32, lr: float = 2e-3,
 
 
 def probe_info(cfg: DictConfig, frames: int) -> dict[str, Any]:
-    """What `twin_probe` trains on and reads (MUST_MATCH for a saved one to be loaded)."""
-    e, source = cfg.model.evaluate, cfg.data.source
-    return {"cameras": resolve_camera_names(source.cameras), "probe_cameras": str(e.probe_cameras),
-            "image_size": [int(source.height), int(source.width)], "rate": float(source.fps), "frames": int(frames),
-            "probe_seed": int(e.probe_seed), "probe_clips": int(e.probe_clips), "probe_steps": int(e.probe_steps),
-            "seed": int(cfg.seed)}
-
-
-def save_twin_probe(folder: str | Path, probe: TwinDisplacementProbe, info: dict[str, Any]) -> None:
-    """Write `probe` (weights only) and `info` into `folder`, each file atomically."""
-    from safetensors.torch import save as save_tensors
-
-    folder = Path(folder)
-    atomic_write_bytes(folder / WEIGHTS, save_tensors({k: v.contiguous() for k, v in probe.state_dict().items()}))
-    atomic_write_text(folder / INFO, yaml.safe_dump(info, sort_keys=False))
+    """What `twin_probe` trains on and reads (MUST_MATCH for a saved one to be loaded): the pair probe's info without
+    the settings the twin probe does not use (it reads frames of two futures at one instant, from twins only)."""
+    return {key: value for key, value in action_probe_info(cfg, frames).items()
+            if key not in ("probe_stride", "probe_driven_share")}
 
 
 def load_twin_probe(folder: str | Path, cfg: DictConfig, frames: int) -> tuple[TwinDisplacementProbe, dict[str, Any]]:
@@ -185,7 +173,7 @@ def twin_probe(cfg: DictConfig, frames: int,
                                   mirror=probe_mirror(cfg))
     info = {**probe_info(cfg, frames), "fit": fit}
     if save_to is not None:
-        save_twin_probe(save_to, probe, info)
+        save_action_probe(save_to, probe, info, (WEIGHTS, INFO))
     return probe, info
 
 
