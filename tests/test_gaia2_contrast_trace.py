@@ -7,7 +7,14 @@ import pytest
 import torch
 
 from gaia_app.diffusion.flow_matching import FlowSampler
-from gaia_app.protocols.gaia2_contrast_trace import TracingSampler, nearest_steps, projections, uniform_share
+from gaia_app.protocols.gaia2_contrast_trace import (
+    TracingSampler,
+    coarse_energy,
+    nearest_steps,
+    pooled,
+    projections,
+    uniform_share,
+)
 from tests.test_eval_latent_world_model import BENCHMARK_SCRIPT, load_benchmark
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -34,6 +41,19 @@ def test_the_uniform_share_is_the_energy_of_the_change_common_to_every_grid_posi
     pattern *= offset.norm() / pattern.norm()
     torch.testing.assert_close(uniform_share(torch.cat([offset, pattern, offset + pattern])),
                                torch.tensor([1.0, 0.0, 0.5], dtype=torch.float64), atol=1e-5, rtol=0)
+
+
+def test_a_blurred_but_right_future_scores_low_on_share_and_fully_on_the_coarse_share() -> None:
+    """The real contrast's block means spread back over each block (a future that moves the scene right but draws it
+    blurred): `share` is the real energy left after pooling, `share_pool4` is 1; a cell-level checkerboard has no
+    energy left after pooling by 2."""
+    real = torch.randn(3, 2, 4, 8, 12)
+    blurred = pooled(real, 4).repeat_interleave(4, dim=-2).repeat_interleave(4, dim=-1)
+    values = projections(blurred[None], real)
+    assert values["share"][0] == pytest.approx(coarse_energy(real, 4), rel=1e-6) and values["share"][0] < 0.5
+    assert values["share_pool4"][0] == pytest.approx(1.0, rel=1e-6) and coarse_energy(blurred, 4) == pytest.approx(1.0)
+    checkerboard = (torch.arange(8)[:, None] + torch.arange(12)).remainder(2).double() * 2 - 1
+    assert coarse_energy(checkerboard.expand(3, 2, 4, 8, 12), 2) == pytest.approx(0.0, abs=1e-12)
 
 
 def test_the_tracing_sampler_keeps_an_exact_estimate_and_samples_as_the_plain_sampler() -> None:

@@ -18,7 +18,11 @@ This readout stays in the world model's latent space. For each held-out scene an
     cosine   = ⟨D, D_real⟩ ÷ (|D|·|D_real|), and norm = |D| ÷ |D_real|: how much of D is anything else;
     uniform  = the share of |D|² in its mean over the grid (per camera, step and channel): a change that is the same
                at every position, which is what an AdaLN shift writes directly (the real contrast's own, a
-               displacement of the scene, is `real_uniform`).
+               displacement of the scene, is `real_uniform`);
+    share_poolP = the share computed on both contrasts averaged over P × P grid cells: what D carries of the real
+               contrast at a coarser scale. A future that moves its scene right but draws it blurred scores low on
+               `share` and high here; `real_coarse` says how much of the real contrast's energy such a future could
+               carry at most (its energy left after the same pooling).
 
 Reading it: if the conditional mean (k = 0) carries much of D_real and the samples little, the sampler loses the
 command; if both carry little, the net has not learnt it, and sampling cannot bring it back. Guidance multiplies the
@@ -47,7 +51,8 @@ from gaia_app.pipelines.gaia2 import Gaia2Pipeline, with_labels
 from gaia_app.protocols.controllability import CONTRASTS, commanded_actions
 from gaia_app.protocols.gaia2_actions import check_action_agents, noise_draws, resimulated
 
-MEASURES = ("share", "cosine", "norm", "uniform")
+POOLS = (2, 4)  # grid cells averaged per side for the coarse shares (a cell: 4 px for the s = 4 tokenizer, 8 for s = 8)
+MEASURES = ("share", "cosine", "norm", "uniform", *(f"share_pool{p}" for p in POOLS))
 
 
 class TracingSampler(FlowSampler):
@@ -107,7 +112,31 @@ def projections(trace: torch.Tensor, real: torch.Tensor) -> dict[str, torch.Tens
     dot = flat @ reference
     norms = flat.norm(dim=1)
     return {"share": dot / energy, "cosine": dot / (norms * energy.sqrt()).clamp_min(1e-12),
-            "norm": norms / energy.sqrt(), "uniform": uniform_share(trace)}
+            "norm": norms / energy.sqrt(), "uniform": uniform_share(trace),
+            **{f"share_pool{p}": pooled_share(trace, real, p) for p in POOLS}}
+
+
+def pooled(contrast: torch.Tensor, cells: int) -> torch.Tensor:
+    """(…, h, w) → (…, ⌈h/cells⌉, ⌈w/cells⌉): the mean of each cells × cells block (partial blocks at the edges)."""
+    *lead, h, w = contrast.shape
+    flat = contrast.double().reshape(-1, 1, h, w)
+    out = torch.nn.functional.avg_pool2d(flat, cells, ceil_mode=True, count_include_pad=False)
+    return out.reshape(*lead, *out.shape[-2:])
+
+
+def pooled_share(trace: torch.Tensor, real: torch.Tensor, cells: int) -> torch.Tensor:
+    """(k,) ⟨pool(D), pool(D_real)⟩ ÷ |pool(D_real)|² for contrasts trace (k, …, h, w), real (…, h, w)."""
+    reference = pooled(real, cells).flatten()
+    energy = reference.square().sum().clamp_min(1e-24)
+    return pooled(trace, cells).flatten(1) @ reference / energy
+
+
+def coarse_energy(contrast: torch.Tensor, cells: int) -> float:
+    """The share of a contrast's energy (…, h, w) left in its block means (pooled, spread back over each block)."""
+    h, w = contrast.shape[-2:]
+    means = pooled(contrast, cells)
+    spread = means.repeat_interleave(cells, dim=-2).repeat_interleave(cells, dim=-1)[..., :h, :w]
+    return float(spread.square().sum() / contrast.double().square().sum().clamp_min(1e-24))
 
 
 def uniform_share(contrast: torch.Tensor) -> torch.Tensor:
@@ -142,6 +171,7 @@ def contrast_trace(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[
     used = sorted({index for pair in pairs for index in pair})
     per_scene: dict[str, dict[str, list[list[float]]]] = {m: {k: [] for k in MEASURES} for m in CONTRASTS}
     real_uniform: dict[str, list[float]] = {m: [] for m in CONTRASTS}
+    real_coarse: dict[str, dict[str, list[float]]] = {m: {f"pool{p}": [] for p in POOLS} for m in CONTRASTS}
     for i in tqdm(range(n), desc="contrast trace"):
         _, clip = scenes[i]
         real, traces = {}, {}
@@ -159,6 +189,8 @@ def contrast_trace(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[
         for metric, (high, low) in zip(CONTRASTS, pairs):
             values = projections(traces[high] - traces[low], real[high] - real[low])
             real_uniform[metric].append(float(uniform_share((real[high] - real[low])[None])[0]))
+            for cells in POOLS:
+                real_coarse[metric][f"pool{cells}"].append(coarse_energy(real[high] - real[low], cells))
             for measure in MEASURES:
                 per_scene[metric][measure].append(values[measure].tolist())
     taus = pipeline.world.sampler.taus()[:-1].tolist()
@@ -169,7 +201,9 @@ def contrast_trace(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[
             "summary": {metric: {measure: summarise(values) for measure, values in measures.items()}
                         for metric, measures in per_scene.items()},
             "real_uniform": {metric: summarise([[v] for v in values])[0] for metric, values in real_uniform.items()},
-            "per_scene": per_scene, "per_scene_real_uniform": real_uniform}
+            "real_coarse": {metric: {pool: summarise([[v] for v in values])[0] for pool, values in pools.items()}
+                            for metric, pools in real_coarse.items()},
+            "per_scene": per_scene, "per_scene_real_uniform": real_uniform, "per_scene_real_coarse": real_coarse}
 
 
 def summarise(values: list[list[float]]) -> list[dict[str, float]]:
@@ -206,4 +240,8 @@ def markdown(trace: dict[str, Any], name: str) -> list[str]:
                          + " | ".join(f"{c['mean']:+.3f} [{c['low']:+.3f}, {c['high']:+.3f}]" for c in cells) + " |")
     real = "; ".join(f"{metric.replace('_', ' ')} {c['mean']:.3f} [{c['low']:.3f}, {c['high']:.3f}]"
                      for metric, c in trace["real_uniform"].items())
-    return [*lines, "", f"uniform share of the real contrasts themselves: {real}"]
+    coarse = "; ".join(f"{metric.replace('_', ' ')} "
+                       + ", ".join(f"{pool} {c['mean']:.3f}" for pool, c in pools.items())
+                       for metric, pools in trace["real_coarse"].items())
+    return [*lines, "", f"uniform share of the real contrasts themselves: {real}",
+            f"energy of the real contrasts left after pooling (what a blurred but right future could carry): {coarse}"]
