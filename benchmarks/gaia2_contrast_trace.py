@@ -26,6 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from gaia2_action_adherence import CONF, variant_name, with_weights  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 from hydra.core.global_hydra import GlobalHydra  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
 
 from gaia_app.pipelines.gaia2_edits import cut_steps  # noqa: E402
 from gaia_app.protocols import gaia2_contrast_trace  # noqa: E402
@@ -34,12 +35,18 @@ from gaia_app.protocols.loading import load_gaia2  # noqa: E402
 from gaia_app.utils.run_dir import atomic_write_text  # noqa: E402
 
 
-def traces(folders: list[str], overrides: list[str], scales: list[float] | None = None) -> dict[str, Any]:
-    """{"traces": {variant: contrast trace}} for each folder × guidance scale on one set of scenes and noise."""
+def compose_config(folder: str, overrides: list[str]) -> DictConfig:
+    """generate.yaml for model=gaia2 data=synthetic_rig mode=evaluate with weights=`folder` and `overrides`."""
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("generate", ["model=gaia2", "data=synthetic_rig", "mode=evaluate", f"weights={folders[0]}",
-                                   *overrides])
+        return compose("generate", ["model=gaia2", "data=synthetic_rig", "mode=evaluate", f"weights={folder}",
+                                    *overrides])
+
+
+def traces(folders: list[str], overrides: list[str], scales: list[float] | None = None) -> dict[str, Any]:
+    """{"traces": {variant: contrast trace}} for each folder × guidance scale on one set of scenes and noise."""
+    cfg = compose_config(folders[0], overrides)
+    gaia2_contrast_trace.check_settings(cfg)  # before any weights load or scene renders
     if scales is not None and any(scale < 0 for scale in scales):
         raise ValueError(f"--scales {scales}: guidance scales must be ≥ 0")
     pipelines = {variant_name(folder, scale): load_gaia2(with_weights(cfg, folder, scale))

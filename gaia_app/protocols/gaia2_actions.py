@@ -169,8 +169,7 @@ def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Sy
     commanded = commanded_actions(contexts, first, frames - first, rate, commands)  # (C·N, f, 2) command-major
     pairs = contrast_pairs(commanded[:, first:-1].unflatten(0, (len(commands), -1)))  # fails before any rollout
     n, draws = len(scenes), noise_draws(cfg)
-    # `draws` noise seeds per scene, shared by its commands and its floor
-    noise = [[int(torch.randint(2**31, (), generator=generator)) for _ in range(draws)] for _ in scenes]
+    noise = scene_noise_seeds(generator, n, draws)
     videos: dict[str, list[torch.Tensor]] = {name: [] for name in ROWS}
     for k in tqdm(range(len(commanded)), desc="action adherence"):
         i = k % n
@@ -211,6 +210,12 @@ def action_table(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[Sy
             "probe_cameras": g.evaluate.probe_cameras, "scored_steps": frames - first - stride, "rows": rows,
             "speed_probe": "pair" if twin is None else "twin",
             "contrasts": contrasted, "checks": action_checks(rows)}
+
+
+def scene_noise_seeds(generator: torch.Generator, scenes: int, draws: int) -> list[list[int]]:
+    """`draws` noise seeds per scene, drawn from `generator` scene by scene: a scene's commands and its floor share
+    them (benchmarks/gaia2_contrast_trace.py draws them the same way, so its samples are this table's futures)."""
+    return [[int(torch.randint(2**31, (), generator=generator)) for _ in range(draws)] for _ in range(scenes)]
 
 
 def continuation(pipeline: Gaia2Pipeline, context: torch.Tensor, cond: Any, new_steps: int, seed: int,

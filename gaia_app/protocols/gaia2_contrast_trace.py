@@ -16,16 +16,19 @@ This readout stays in the world model's latent space. For each held-out scene an
     share    = ⟨D, D_real⟩ ÷ ⟨D_real, D_real⟩: how much of the real latent contrast D carries, 1 all of it, 0 none
                (the component of D along D_real; a future that moves its scene as the real one does scores 1);
     cosine   = ⟨D, D_real⟩ ÷ (|D|·|D_real|), and norm = |D| ÷ |D_real|: how much of D is anything else;
-    uniform  = the share of |D|² in its mean over the grid (per camera, step and channel): a change that is the same
-               at every position, which is what an AdaLN shift writes directly (the real contrast's own, a
-               displacement of the scene, is `real_uniform`);
-    share_poolP = the share computed on both contrasts averaged over P × P grid cells: what D carries of the real
-               contrast at a coarser scale. A future that moves its scene right but draws it blurred scores low on
-               `share` and high here; `real_coarse` says how much of the real contrast's energy such a future could
-               carry at most (its energy left after the same pooling).
+    uniform  = the share of |D|² in a change that is the same for every token of the grid (per camera, step,
+               channel and position within a token's patch): the kind of change a per-step AdaLN modulation makes
+               when nothing spatial shapes it (the real contrast's own, a displacement of the scene, is
+               `real_uniform`);
+    share_poolP = the share of both contrasts projected onto fields constant over P × P grid cells (blocks at the
+               edges may be smaller): what D carries of the real contrast at a coarser scale. The real contrast's own
+               block means score 1 here, and on `share` they score `real_coarse`, the part of the real contrast's
+               energy that survives the projection: a future that moves its scene right but draws it this blurred.
 
-Reading it: if the conditional mean (k = 0) carries much of D_real and the samples little, the sampler loses the
-command; if both carry little, the net has not learnt it, and sampling cannot bring it back. Guidance multiplies the
+Reading it: if the conditional mean (k = 0, unguided) carries much of D_real and the samples little, the sampler
+loses the command; if both carry little, the net has not learnt it, and sampling cannot bring it back. A perfect
+net's conditional mean need not score 1: what the context does not predict (content entering the view) is not in
+it. Guidance multiplies the
 conditional − unconditional difference, so `--scales 1 4` of the benchmark separates what the net's conditional
 mean carries from what guidance adds. Per-scene values, with 95 % intervals over scenes.
 """
@@ -49,7 +52,7 @@ from gaia_app.eval.controllability import contrast_pairs, probe_clips
 from gaia_app.eval.intervals import mean_interval
 from gaia_app.pipelines.gaia2 import Gaia2Pipeline, with_labels
 from gaia_app.protocols.controllability import CONTRASTS, commanded_actions
-from gaia_app.protocols.gaia2_actions import check_action_agents, noise_draws, resimulated
+from gaia_app.protocols.gaia2_actions import check_action_agents, noise_draws, resimulated, scene_noise_seeds
 
 POOLS = (2, 4)  # grid cells averaged per side for the coarse shares (a cell: 4 px for the s = 4 tokenizer, 8 for s = 8)
 MEASURES = ("share", "cosine", "norm", "uniform", *(f"share_pool{p}" for p in POOLS))
@@ -102,9 +105,9 @@ def traced_rollout(pipeline: Gaia2Pipeline, context: torch.Tensor, cond: Any, ne
     return torch.stack([*estimates, x[0, :, c:]]).cpu()
 
 
-def projections(trace: torch.Tensor, real: torch.Tensor) -> dict[str, torch.Tensor]:
-    """trace (k, v, g, C, h, w) contrasts, real (v, g, C, h, w) the real contrast → {share, cosine, norm, uniform}
-    (k,) each (module docstring)."""
+def projections(trace: torch.Tensor, real: torch.Tensor, patch: int = 1) -> dict[str, torch.Tensor]:
+    """trace (k, v, g, C, h, w) contrasts, real (v, g, C, h, w) the real contrast, patch the world model's token side
+    → {share, cosine, norm, uniform, share_poolP} (k,) each (module docstring)."""
     flat, reference = trace.flatten(1).double(), real.flatten().double()
     energy = reference.square().sum()
     if energy <= 0:
@@ -112,38 +115,57 @@ def projections(trace: torch.Tensor, real: torch.Tensor) -> dict[str, torch.Tens
     dot = flat @ reference
     norms = flat.norm(dim=1)
     return {"share": dot / energy, "cosine": dot / (norms * energy.sqrt()).clamp_min(1e-12),
-            "norm": norms / energy.sqrt(), "uniform": uniform_share(trace),
+            "norm": norms / energy.sqrt(), "uniform": uniform_share(trace, patch),
             **{f"share_pool{p}": pooled_share(trace, real, p) for p in POOLS}}
 
 
-def pooled(contrast: torch.Tensor, cells: int) -> torch.Tensor:
-    """(…, h, w) → (…, ⌈h/cells⌉, ⌈w/cells⌉): the mean of each cells × cells block (partial blocks at the edges)."""
+def uniform_share(contrast: torch.Tensor, patch: int = 1) -> torch.Tensor:
+    """(k,) the share of each contrast's energy (k, v, g, C, h, w) in its mean over the tokens of the grid, taken
+    separately at each of the patch × patch positions within a token (a token-constant change repeats every patch)."""
+    k, h, w = contrast.shape[0], contrast.shape[-2], contrast.shape[-1]
+    if h % patch or w % patch:
+        raise ValueError(f"latent grid {h}×{w} is not a whole number of {patch}×{patch} patches")
+    tokens = contrast.double().unflatten(-1, (w // patch, patch)).unflatten(-3, (h // patch, patch))
+    mean = tokens.mean(dim=(-4, -2), keepdim=True).expand_as(tokens)
+    return mean.reshape(k, -1).square().sum(1) / tokens.reshape(k, -1).square().sum(1).clamp_min(1e-24)
+
+
+def block_coordinates(contrast: torch.Tensor, cells: int) -> torch.Tensor:
+    """(…, ⌈h/cells⌉, ⌈w/cells⌉): each cells × cells block's mean times the square root of its number of cells (blocks
+    at the edges may be smaller): the contrast (…, h, w) projected onto block-constant fields, in an orthonormal basis,
+    so that its sums of products and squares are those of the projected fields."""
     *lead, h, w = contrast.shape
     flat = contrast.double().reshape(-1, 1, h, w)
-    out = torch.nn.functional.avg_pool2d(flat, cells, ceil_mode=True, count_include_pad=False)
-    return out.reshape(*lead, *out.shape[-2:])
+    means = torch.nn.functional.avg_pool2d(flat, cells, ceil_mode=True, count_include_pad=False)
+    rows = torch.tensor([min(cells, h - i) for i in range(0, h, cells)], dtype=torch.float64)
+    cols = torch.tensor([min(cells, w - j) for j in range(0, w, cells)], dtype=torch.float64)
+    return (means * (rows[:, None] * cols).sqrt()).reshape(*lead, *means.shape[-2:])
 
 
 def pooled_share(trace: torch.Tensor, real: torch.Tensor, cells: int) -> torch.Tensor:
-    """(k,) ⟨pool(D), pool(D_real)⟩ ÷ |pool(D_real)|² for contrasts trace (k, …, h, w), real (…, h, w)."""
-    reference = pooled(real, cells).flatten()
+    """(k,) ⟨P D, P D_real⟩ ÷ |P D_real|², P the projection onto fields constant over cells × cells blocks; trace
+    (k, …, h, w), real (…, h, w)."""
+    reference = block_coordinates(real, cells).flatten()
     energy = reference.square().sum().clamp_min(1e-24)
-    return pooled(trace, cells).flatten(1) @ reference / energy
+    return block_coordinates(trace, cells).flatten(1) @ reference / energy
 
 
 def coarse_energy(contrast: torch.Tensor, cells: int) -> float:
-    """The share of a contrast's energy (…, h, w) left in its block means (pooled, spread back over each block)."""
-    h, w = contrast.shape[-2:]
-    means = pooled(contrast, cells)
-    spread = means.repeat_interleave(cells, dim=-2).repeat_interleave(cells, dim=-1)[..., :h, :w]
-    return float(spread.square().sum() / contrast.double().square().sum().clamp_min(1e-24))
+    """|P D|² ÷ |D|²: the share of a contrast's energy (…, h, w) that its projection onto fields constant over
+    cells × cells blocks keeps."""
+    return float(block_coordinates(contrast, cells).square().sum() / contrast.double().square().sum().clamp_min(1e-24))
 
 
-def uniform_share(contrast: torch.Tensor) -> torch.Tensor:
-    """(k,) the share of each contrast's energy (k, v, g, C, h, w) in its mean over the grid (h, w)."""
-    flat = contrast.double()
-    mean = flat.mean(dim=(-2, -1), keepdim=True).expand_as(flat)
-    return mean.flatten(1).square().sum(1) / flat.flatten(1).square().sum(1).clamp_min(1e-24)
+def check_settings(cfg: DictConfig) -> None:
+    """ValueError naming the setting unless the trace can read it: one future per scene and command
+    (model.evaluate.noise_draws=1), the Euler solver, a known model.evaluate.action_agents."""
+    check_action_agents(cfg)
+    if noise_draws(cfg) != 1:
+        raise ValueError("the contrast trace samples one future per scene and command: set "
+                         "model.evaluate.noise_draws=1")
+    if cfg.model.sampler.solver != "euler":
+        raise ValueError(f"model.sampler.solver={cfg.model.sampler.solver!r}: the contrast trace reads one velocity "
+                         "per solver step; use model.sampler.solver=euler")
 
 
 def contrast_trace(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[SyntheticSample, LatentClip]],
@@ -156,18 +178,15 @@ def contrast_trace(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[
     ceilings: shared with other traces or action tables of the same scenes (keyed by scene and actions)."""
     ceilings = {} if ceilings is None else ceilings
     g = cfg.model
-    check_action_agents(cfg)
-    if noise_draws(cfg) != 1:
-        raise ValueError("the contrast trace samples one future per scene and command: set "
-                         "model.evaluate.noise_draws=1")
+    check_settings(cfg)
     first, frames = g.context_steps * pipeline.temporal, g.steps * pipeline.temporal
     rate = float(scenes[0][0].clip.fps)
     contexts = probe_clips([sample.clip for sample, _ in scenes], rate, frames)
     commands = [tuple(cmd) for cmd in g.evaluate.commands]
     commanded = commanded_actions(contexts, first, frames - first, rate, commands)  # (C·N, f, 2) command-major
     pairs = contrast_pairs(commanded[:, first:-1].unflatten(0, (len(commands), -1)))
-    n, new_steps = len(scenes), g.steps - g.context_steps
-    seeds = [int(torch.randint(2**31, (), generator=generator)) for _ in scenes]
+    n, new_steps, patch = len(scenes), g.steps - g.context_steps, pipeline.world.model.patch
+    seeds = [draws[0] for draws in scene_noise_seeds(generator, n, 1)]
     used = sorted({index for pair in pairs for index in pair})
     per_scene: dict[str, dict[str, list[list[float]]]] = {m: {k: [] for k in MEASURES} for m in CONTRASTS}
     real_uniform: dict[str, list[float]] = {m: [] for m in CONTRASTS}
@@ -187,8 +206,8 @@ def contrast_trace(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[
             cond = cond.without("agents") if g.evaluate.action_agents == "dropped" else cond
             traces[command] = traced_rollout(pipeline, context, cond, new_steps, seeds[i])
         for metric, (high, low) in zip(CONTRASTS, pairs):
-            values = projections(traces[high] - traces[low], real[high] - real[low])
-            real_uniform[metric].append(float(uniform_share((real[high] - real[low])[None])[0]))
+            values = projections(traces[high] - traces[low], real[high] - real[low], patch)
+            real_uniform[metric].append(float(uniform_share((real[high] - real[low])[None], patch)[0]))
             for cells in POOLS:
                 real_coarse[metric][f"pool{cells}"].append(coarse_energy(real[high] - real[low], cells))
             for measure in MEASURES:
