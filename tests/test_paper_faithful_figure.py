@@ -40,13 +40,13 @@ def test_the_study_draws_both_figures_and_reads_every_arm_and_metric(tmp_path: P
     assert by_key[("GAIA-1", "paper", "curvature")] == "met"
     assert by_key[("GAIA-1", "paper", "speed")].startswith("≈")
     assert by_key[("GAIA-2", "paper", "agent ratio")] == "one budget"
-    # GAIA-2's onset arm: more budget takes its curvature off the floor towards the target; its agents barely move
-    # (1.0× → 1.1×), so their line reaches 2× only thousands of times past the largest budget, or never
-    assert by_key[("GAIA-2", "paper_onsets", "curvature")].startswith("≈")
+    # GAIA-2's onset arm: more budget takes its curvature off the floor to the figure's target at 8× (world 5111);
+    # its agents move slowly (1.0× → 1.4×), so their line reaches 2× only tens of times past the largest budget
+    assert by_key[("GAIA-2", "paper_onsets", "curvature")] == "met"
     # read by the twin probe (which passes its check), the onset arm's speed error is still far above its target
     assert by_key[("GAIA-2", "paper_onsets", "speed (twin probe)")].startswith("≈")
     agents = by_key[("GAIA-2", "paper_onsets", "agent ratio")]
-    assert agents.startswith("flat") or float(re.search(r"\((\d+)× the largest\)", agents)[1]) >= 1000, agents
+    assert float(re.search(r"\((\d+)× the largest\)", agents)[1]) >= 10, agents
     assert json.loads((tmp_path / "crossings.json").read_text()) == rows
 
 
@@ -68,19 +68,19 @@ def test_every_point_is_the_one_its_table_gives() -> None:
                 assert f"{prompted:.2f} / {unprompted:.2f}" in section, (*where, prompt)
             for key, (mean, low, high) in point.get("agent_iou", {}).items():
                 assert f"{mean:.3f} [{low:.3f}, {high:.3f}]" in section, (*where, key)
-    # the twin probe's speed readings (GAIA-2) sit in the section that reports them
+    # the twin probe's speed readings (GAIA-2) sit in the section that introduced the probe, or in the point's own
     twin_section = section_of(doc, study["gaia2"]["speed_twin_source"])
     read = [p for p in study["gaia2"]["points"] if "speed_twin" in p]
-    assert len(read) == 3 and f"{study['gaia2']['targets']['speed_twin']:.3f}" in twin_section
+    assert len(read) == 4 and f"{study['gaia2']['targets']['speed_twin']:.3f}" in twin_section
     for point in read:
         mean, half = point["speed_twin"]
-        assert f"{mean:.3f} ± {half:.3f}" in twin_section, (point["arm"], point["budget"], "speed_twin")
+        where = twin_section + section_of(doc, point["source"])
+        assert f"{mean:.3f} ± {half:.3f}" in where, (point["arm"], point["budget"], "speed_twin")
     speed = next(r for r in bench.crossings(study) if r["arm"] == "paper" and r["metric"] == "speed")
     assert speed["crossing"] == "≈ 3.0e+19 FLOPs (2387× the largest)" and "2 387× the GPU budget" in doc
-    # the GAIA-2 onset arm's curvature line through its three budgets, as the doc's table gives it (about 4.3× the
-    # CPU budget of 2.7e14)
-    curvature = next(r for r in bench.crossings(study) if r["arm"] == "paper_onsets" and r["metric"] == "curvature")
-    assert curvature["crossing"] == "≈ 1.2e+15 FLOPs (1× the largest)" and "≈ 1.2e+15 FLOPs" in doc
+    # the GAIA-2 onset arm's twin-probe speed line through its four budgets, as the doc's table gives it
+    twin = next(r for r in bench.crossings(study) if r["arm"] == "paper_onsets" and r["metric"] == "speed (twin probe)")
+    assert twin["crossing"] == "≈ 2.0e+18 FLOPs (923× the largest)" and "≈ 2.0e+18 FLOPs (923× the largest" in doc
 
 
 def section_of(doc: str, source: str) -> str:
