@@ -59,13 +59,21 @@ def ego_motion_flow(actions: torch.Tensor, seconds: torch.Tensor, intrinsics: to
     actions (b, t, 2) speed m/s and curvature 1/m (left positive), seconds (b, t) per step; the ego drives an arc of
     length speed · seconds turning by speed · curvature · seconds.
     """
+    distance = actions[..., 0] * seconds
+    yaw = distance * actions[..., 1]  # (b, t)
+    move = torch.stack([distance * torch.cos(yaw / 2), distance * torch.sin(yaw / 2), torch.zeros_like(yaw)], -1)
+    return pose_flow(move, yaw, intrinsics, extrinsics, image_size, grid)
+
+
+def pose_flow(move: torch.Tensor, yaw: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.Tensor,
+              image_size: tuple[int, int], grid: tuple[int, int], limit: float | None = LIMIT) -> torch.Tensor:
+    """Flow (b, t, v, gh, gw, 2) in cells of the static scene when the ego moves by `move` (b, t, 3) m in its own
+    frame and turns by `yaw` (b, t) rad (left positive); 0 where the moved point lies behind the camera, clipped to
+    ±`limit` cells (None: not clipped)."""
     height, width = image_size
     gh, gw = grid
     rays = cell_rays(intrinsics, image_size, grid)
     points = scene_points(rays, extrinsics)  # (b, v, gh, gw, 3)
-    distance = actions[..., 0] * seconds
-    yaw = distance * actions[..., 1]  # (b, t)
-    move = torch.stack([distance * torch.cos(yaw / 2), distance * torch.sin(yaw / 2), torch.zeros_like(yaw)], -1)
     cos, sin = torch.cos(yaw), torch.sin(yaw)
     zero, one = torch.zeros_like(yaw), torch.ones_like(yaw)
     undo_turn = torch.stack([torch.stack([cos, sin, zero], -1), torch.stack([-sin, cos, zero], -1),
@@ -78,4 +86,6 @@ def ego_motion_flow(actions: torch.Tensor, seconds: torch.Tensor, intrinsics: to
     uv = pixels[..., :2] / camera[..., 2:].clamp_min(0.1)
     start = torch.einsum("bvij,bvhwj->bvhwi", intrinsics, rays)[..., :2]
     flow = (uv - start[:, None]) / uv.new_tensor([width / gw, height / gh])
-    return torch.where(ahead[..., None], flow.clamp(-LIMIT, LIMIT), torch.zeros_like(flow))
+    if limit is not None:
+        flow = flow.clamp(-limit, limit)
+    return torch.where(ahead[..., None], flow, torch.zeros_like(flow))
