@@ -54,6 +54,11 @@ ARMS = {
     # only, windows drawn where the command changes; the CPU arm whose curvature left its floor at 2× its budget
     "paper_onsets": ("gaia2/road_users/world_model_s4_paper_gpu",
                      ("data.window_sampling=action_change", "data.change_after=2", "data.train_meta={open_loop:true}")),
+    # the onset arm with one token per latent cell (4 px instead of 8; 4× the tokens): the speed command moves most of
+    # the picture by under a cell (docs/paper_faithful.md, "Where the speed contrast lies in the picture"); opt-in
+    "paper_onsets_p1": ("gaia2/road_users/world_model_s4_paper_gpu",
+                        ("model.net.patch_size=1", "data.window_sampling=action_change", "data.change_after=2",
+                         "data.train_meta={open_loop:true}")),
 }
 # the study's clips (docs/paper_faithful.md): 960 of 32 frames on the 3-camera rig, half driven, 16 held out
 CLIPS = ["data=synthetic_rig", "data.source.num_clips=960", "data.source.clip_len=32", "data.source.driven_share=0.5",

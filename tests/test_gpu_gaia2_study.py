@@ -35,6 +35,10 @@ def test_each_arm_gets_its_experiment_budget_and_options(study, tmp_path: Path) 
     experiment, extra = study.ARMS["paper_onsets"]
     composed = compose_config("train", [f"experiment={experiment}", *extra], tmp_path / "onsets")
     assert dict(composed.data.train_meta) == {"open_loop": True}
+    experiment, extra = study.ARMS["paper_onsets_p1"]
+    fine = compose_config("train", [f"experiment={experiment}", *extra], tmp_path / "onsets_p1")
+    assert fine.model.net.patch_size == 1 and composed.model.net.patch_size == 2
+    assert fine.data.window_sampling == "action_change" and not fine.model.net.action_raster
     shortcut = study.train_command("shortcut", 1200, latents, tmp_path / "run", 300, dry=False)
     assert "experiment=gaia2/road_users/world_model_s4_gpu" in shortcut
     assert not any(a.startswith("model.net.agent_position") for a in shortcut)
