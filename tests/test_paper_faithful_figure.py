@@ -82,9 +82,10 @@ def test_every_point_is_the_one_its_table_gives() -> None:
     assert twin["crossing"] == "≈ 2.0e+18 FLOPs (923× the largest)" and "≈ 2.0e+18 FLOPs (923× the largest" in doc
 
 
-def test_the_guidance_chosen_on_the_validation_world_is_the_docs_and_meets_curvature_only() -> None:
+def test_the_guidance_chosen_on_the_validation_world_is_the_docs_and_meets_curvature_on_two_worlds_of_three() -> None:
     """The onset arm at 8×: the scale its rule picks from the validation world's readings, and the held-out worlds'
-    readings at that scale, as the doc gives them; curvature met on both by the point estimate, speed on neither."""
+    readings at that scale, as the doc gives them; curvature met on 5111 and 6161 by the point estimate and missed on
+    7171, speed missed on all three."""
     bench = load_benchmark("paper_faithful_figure")
     doc = (ROOT / "docs" / "paper_faithful.md").read_text()
     point = bench.load_study()["gaia2"]["points"][-1]
@@ -93,14 +94,17 @@ def test_the_guidance_chosen_on_the_validation_world_is_the_docs_and_meets_curva
     assert int(min(validation, key=lambda scale: validation[scale][0])) == chosen["scale"] == 2
     for scale, (mean, half) in validation.items():
         assert f"{mean:.4f} ± {half:.4f}" in section, ("validation", scale)
-    assert set(chosen["scored"]) == {"5111", "6161"}
+    assert set(chosen["scored"]) == {"5111", "6161", "7171"}
+    met = set()
     for world, reading in chosen["scored"].items():
         (curvature, c_half), (speed, s_half) = reading["curvature"], reading["speed_twin"]
         assert f"{curvature:.4f} ±" in section and f"{c_half:.4f}" in section, world
         assert f"{speed:.3f} ± {s_half:.3f}" in section, world
-        assert curvature <= reading["targets"]["curvature"], world
-        assert speed > reading["targets"]["speed_twin"], world
         assert f"{reading['targets']['curvature']:.4f}" in section, world
+        assert speed > reading["targets"]["speed_twin"], world
+        if curvature <= reading["targets"]["curvature"]:
+            met.add(world)
+    assert met == {"5111", "6161"}
 
 
 def section_of(doc: str, source: str) -> str:
