@@ -66,7 +66,8 @@ def scene_positions(sample: SyntheticSample, actions: np.ndarray, first: int, ra
 
 def displacement_table(samples: list[SyntheticSample], commands: list[tuple[str, str]], first: int, frames: int,
                        cell_px: float, token_px: float) -> dict[str, Any]:
-    """{contrast: {last, horizon, share_cell, share_token: interval dicts}, commanded: …} over the scenes.
+    """{summary: {contrast: {last, horizon, share_cell, share_token: interval over scenes}}, per_scene, the
+    settings}: the module docstring's readings.
 
     samples: the action table's scenes (protocols/gaia2_evaluate.rig_samples), each at least `frames` frames;
     first: context frames; cell_px / token_px: pixels per latent cell and per world-model token."""
