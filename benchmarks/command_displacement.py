@@ -17,7 +17,6 @@ from typing import Any
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
-from gaia_app.pipelines.gaia2_edits import cut_steps
 from gaia_app.protocols.command_displacement import displacement_table, markdown
 from gaia_app.protocols.gaia2_evaluate import rig_samples
 from gaia_app.protocols.loading import load_gaia2
@@ -36,8 +35,7 @@ def displacement(folder: str, overrides: list[str]) -> dict[str, Any]:
     g = cfg.model
     first, frames = g.context_steps * pipeline.temporal, g.steps * pipeline.temporal
     samples = rig_samples(cfg, cfg.context.seed, g.evaluate.contexts, frames)
-    latents = cut_steps(pipeline.encode(samples[0].clip), g.steps).mean  # (v, t, C, h, w)
-    cell_px = samples[0].clip.frames.shape[-2] / latents.shape[-2]
+    cell_px = float(pipeline.tokenizer.spatial)  # pixels per latent cell
     token_px = cell_px * pipeline.world.model.patch
     table = displacement_table(samples, [tuple(c) for c in g.evaluate.commands], first, frames, cell_px, token_px)
     return {"weights": folder, "overrides": overrides, **table}

@@ -7,6 +7,7 @@ import torch
 from gaia_app.data.synthetic.dataset import SyntheticClipDataset
 from gaia_app.models.gaia2.ego_flow import LIMIT, pose_flow
 from gaia_app.protocols.command_displacement import displacement_table, ego_poses, markdown, scene_positions
+from tests.conftest import load_benchmark
 
 COMMANDS = [("brake", "straight"), ("accelerate", "straight"), ("keep", "left"), ("keep", "right")]
 
@@ -61,3 +62,14 @@ def test_curvature_moves_the_picture_far_more_than_speed(rig_scenes):
 def test_bad_context_length_is_named(rig_scenes):
     with pytest.raises(ValueError, match="context frames 12"):
         displacement_table(rig_scenes, COMMANDS, first=12, frames=12, cell_px=2.0, token_px=4.0)
+
+
+def test_the_benchmark_reads_the_grid_from_the_weights_and_writes_its_table(tmp_path):
+    bench = load_benchmark("command_displacement")
+    result = bench.main(["--weights", "gaia2", "--out", str(tmp_path), "--", "context.seed=5111",
+                         "model.evaluate.contexts=2"])
+    assert result["scenes"] == 2 and result["cell_px"] > 0 and result["token_px"] >= result["cell_px"]
+    speed, curvature = (result["summary"][m]["last"]["mean"] for m in ("speed_contrast", "curvature_contrast"))
+    assert 0 < speed < curvature
+    assert "| speed_contrast |" in (tmp_path / "command_displacement.md").read_text()
+    assert (tmp_path / "command_displacement.json").stat().st_size > 0
