@@ -15,6 +15,8 @@ from gaia_app.protocols.gaia2_contrast_trace import (
     coarse_energy,
     nearest_steps,
     projections,
+    strong_cells,
+    strong_energy,
     uniform_share,
 )
 from tests.test_configs import CONF_DIR
@@ -140,3 +142,19 @@ def test_the_trace_reads_the_guided_velocity_and_its_samples_are_the_rollouts(tm
     traced = traced_rollout(pipeline, context, cond, 1, seed=7)[-1]
     untraced = pipeline.world.rollout(context, [cond], 1, torch.Generator().manual_seed(7))[0, :, 2:].cpu()
     torch.testing.assert_close(traced, untraced)
+
+
+def test_the_strong_and_weak_shares_split_the_real_contrast_by_where_it_is_large() -> None:
+    """A real contrast with a quarter of its cells large (the ground near the ego) and the rest small: a future that
+    draws only the large part carries all of the strong cells and none of the weak ones, and its overall share is the
+    strong cells' energy; the strong cells are picked per cell over channels."""
+    real = torch.randn(2, 2, 4, 4, 8, dtype=torch.float64) * 0.01
+    real[..., 3, :] = torch.randn(2, 2, 4, 8, dtype=torch.float64)  # the bottom row of 4: a quarter of the cells
+    only_strong = torch.zeros_like(real)
+    only_strong[..., 3, :] = real[..., 3, :]
+    values = projections(torch.stack([real, only_strong, real - only_strong]), real)
+    torch.testing.assert_close(values["share_strong"], torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64))
+    torch.testing.assert_close(values["share_weak"], torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64))
+    assert strong_cells(real).shape == (2, 2, 1, 4, 8) and strong_cells(real)[..., 3, :].all()
+    assert not strong_cells(real)[..., :3, :].any()
+    assert values["share"][1] == pytest.approx(strong_energy(real), rel=1e-9) and strong_energy(real) > 0.99

@@ -24,6 +24,10 @@ This readout stays in the world model's latent space. For each held-out scene an
                edges may be smaller): what D carries of the real contrast at a coarser scale. The real contrast's own
                block means score 1 here, and on `share` they score `real_coarse`, the part of the real contrast's
                energy that survives the projection: a future that moves its scene right but draws it this blurred.
+    share_strong / share_weak = the share over the grid cells (camera, step, row, column; channels summed) that hold
+               the largest quarter of |D_real|² per cell (`STRONG_QUANTILE`), and over the other cells: does the net
+               carry the command where the real picture moves most (the ground near the ego for speed) or nowhere?
+               The real contrast's energy in its strong cells is `real_strong`.
 
 Reading it: if the conditional mean (k = 0, unguided) carries much of D_real and the samples little, the sampler
 loses the command; if both carry little, the net has not learnt it, and sampling cannot bring it back. A perfect
@@ -55,7 +59,8 @@ from gaia_app.protocols.controllability import CONTRASTS, commanded_actions
 from gaia_app.protocols.gaia2_actions import check_action_agents, noise_draws, resimulated, scene_noise_seeds
 
 POOLS = (2, 4)  # grid cells averaged per side for the coarse shares (a cell: 4 px for the s = 4 tokenizer, 8 for s = 8)
-MEASURES = ("share", "cosine", "norm", "uniform", *(f"share_pool{p}" for p in POOLS))
+STRONG_QUANTILE = 0.75  # cells at or above this quantile of the real contrast's energy per cell count as strong
+MEASURES = ("share", "cosine", "norm", "uniform", *(f"share_pool{p}" for p in POOLS), "share_strong", "share_weak")
 
 
 class TracingSampler(FlowSampler):
@@ -116,7 +121,31 @@ def projections(trace: torch.Tensor, real: torch.Tensor, patch: int = 1) -> dict
     norms = flat.norm(dim=1)
     return {"share": dot / energy, "cosine": dot / (norms * energy.sqrt()).clamp_min(1e-12),
             "norm": norms / energy.sqrt(), "uniform": uniform_share(trace, patch),
-            **{f"share_pool{p}": pooled_share(trace, real, p) for p in POOLS}}
+            **{f"share_pool{p}": pooled_share(trace, real, p) for p in POOLS}, **split_shares(trace, real)}
+
+
+def strong_cells(real: torch.Tensor) -> torch.Tensor:
+    """(v, g, 1, h, w) bool: the grid cells of a real contrast (v, g, C, h, w) whose energy summed over channels is at
+    or above its `STRONG_QUANTILE` quantile over all cells."""
+    energy = real.double().square().sum(dim=-3, keepdim=True)
+    return energy >= torch.quantile(energy.flatten(), STRONG_QUANTILE)
+
+
+def split_shares(trace: torch.Tensor, real: torch.Tensor) -> dict[str, torch.Tensor]:
+    """{share_strong, share_weak}: (k,) each, the share of the real contrast (v, g, C, h, w) that each contrast of
+    `trace` (k, v, g, C, h, w) carries over the strong cells and over the rest (module docstring)."""
+    strong = strong_cells(real).expand_as(real)
+    out = {}
+    for name, cells in (("share_strong", strong), ("share_weak", ~strong)):
+        reference = torch.where(cells, real.double(), 0.0)
+        out[name] = (trace.double().flatten(1) @ reference.flatten()) / reference.square().sum().clamp_min(1e-24)
+    return out
+
+
+def strong_energy(real: torch.Tensor) -> float:
+    """The share of a real contrast's energy (v, g, C, h, w) in its strong cells."""
+    energy = real.double().square()
+    return float(torch.where(strong_cells(real), energy, 0.0).sum() / energy.sum().clamp_min(1e-24))
 
 
 def uniform_share(contrast: torch.Tensor, patch: int = 1) -> torch.Tensor:
@@ -191,6 +220,7 @@ def contrast_trace(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[
     per_scene: dict[str, dict[str, list[list[float]]]] = {m: {k: [] for k in MEASURES} for m in CONTRASTS}
     real_uniform: dict[str, list[float]] = {m: [] for m in CONTRASTS}
     real_coarse: dict[str, dict[str, list[float]]] = {m: {f"pool{p}": [] for p in POOLS} for m in CONTRASTS}
+    real_strong: dict[str, list[float]] = {m: [] for m in CONTRASTS}
     for i in tqdm(range(n), desc="contrast trace"):
         _, clip = scenes[i]
         real, traces = {}, {}
@@ -208,6 +238,7 @@ def contrast_trace(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[
         for metric, (high, low) in zip(CONTRASTS, pairs):
             values = projections(traces[high] - traces[low], real[high] - real[low], patch)
             real_uniform[metric].append(float(uniform_share((real[high] - real[low])[None], patch)[0]))
+            real_strong[metric].append(strong_energy(real[high] - real[low]))
             for cells in POOLS:
                 real_coarse[metric][f"pool{cells}"].append(coarse_energy(real[high] - real[low], cells))
             for measure in MEASURES:
@@ -222,7 +253,9 @@ def contrast_trace(cfg: DictConfig, pipeline: Gaia2Pipeline, scenes: list[tuple[
             "real_uniform": {metric: summarise([[v] for v in values])[0] for metric, values in real_uniform.items()},
             "real_coarse": {metric: {pool: summarise([[v] for v in values])[0] for pool, values in pools.items()}
                             for metric, pools in real_coarse.items()},
-            "per_scene": per_scene, "per_scene_real_uniform": real_uniform, "per_scene_real_coarse": real_coarse}
+            "real_strong": {metric: summarise([[v] for v in values])[0] for metric, values in real_strong.items()},
+            "per_scene": per_scene, "per_scene_real_uniform": real_uniform, "per_scene_real_coarse": real_coarse,
+            "per_scene_real_strong": real_strong}
 
 
 def summarise(values: list[list[float]]) -> list[dict[str, float]]:
@@ -262,5 +295,8 @@ def markdown(trace: dict[str, Any], name: str) -> list[str]:
     coarse = "; ".join(f"{metric.replace('_', ' ')} "
                        + ", ".join(f"{pool} {c['mean']:.3f}" for pool, c in pools.items())
                        for metric, pools in trace["real_coarse"].items())
+    strong = "; ".join(f"{metric.replace('_', ' ')} {c['mean']:.3f} [{c['low']:.3f}, {c['high']:.3f}]"
+                       for metric, c in trace["real_strong"].items())
     return [*lines, "", f"uniform share of the real contrasts themselves: {real}",
-            f"energy of the real contrasts left after pooling (what a blurred but right future could carry): {coarse}"]
+            f"energy of the real contrasts left after pooling (what a blurred but right future could carry): {coarse}",
+            f"energy of the real contrasts in their strong cells (the top quarter of cells): {strong}"]
