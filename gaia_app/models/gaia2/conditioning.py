@@ -219,13 +219,21 @@ class WorldConditioner(nn.Module):
 
     def adaln(self, tau: torch.Tensor, cond: WorldConditions, keep: Mapping[str, torch.Tensor]) -> torch.Tensor:
         """c (b, t, d) = MLP(τ) + MLP(action) (or the null action when absent/dropped). tau (b, t)."""
-        c = self.tau(fourier(tau, self.dim, 1000.0))
+        c = self.tau_embedding(tau)
         if cond.active("action"):
-            speed, curvature = cond.actions[..., 0], cond.actions[..., 1]
-            feats = torch.cat([fourier(speed, self.dim // 2, 1.0), fourier(curvature, self.dim // 2, 100.0)], dim=-1)
-            action = torch.where(keep["action"][:, None, None], self.action(feats), self.null_action)
+            action = torch.where(keep["action"][:, None, None], self.action_embedding(cond.actions), self.null_action)
             return c + action
         return c + self.null_action
+
+    def tau_embedding(self, tau: torch.Tensor) -> torch.Tensor:
+        """(…, d) the flow time's part of the AdaLN vector; tau (…)."""
+        return self.tau(fourier(tau, self.dim, 1000.0))
+
+    def action_embedding(self, actions: torch.Tensor) -> torch.Tensor:
+        """(…, d) the ego action's part of the AdaLN vector; actions (…, 2) speed m/s and curvature 1/m."""
+        speed, curvature = actions[..., 0], actions[..., 1]
+        feats = torch.cat([fourier(speed, self.dim // 2, 1.0), fourier(curvature, self.dim // 2, 100.0)], dim=-1)
+        return self.action(feats)
 
     def camera_features(self, cond: WorldConditions) -> torch.Tensor:
         """(b, v, 16): focal lengths and principal point over the image size, rotation and translation (m)."""
