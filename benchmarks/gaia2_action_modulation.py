@@ -27,7 +27,7 @@ from gaia_app.utils.run_dir import atomic_write_text  # noqa: E402
 def readings(folders: list[str], start_speeds: list[float], taus: list[float], overrides: list[str]
              ) -> dict[str, Any]:
     """{"settings": …, "weights": {folder: action_modulation}} on the action table's commands."""
-    cfg = compose_config(folders[0], overrides)
+    cfg = compose_config(folders[0], overrides)  # commands, rate and steps: the table's, the same for every folder
     g = cfg.model
     steps = int(g.steps - g.context_steps)
     rate = float(cfg.data.fps or cfg.data.source.fps)  # the rate the scenes are rendered at when not resampled
@@ -47,10 +47,13 @@ def markdown(result: dict[str, Any]) -> str:
              f"(mean [smallest, largest] over start speeds {s['start_speeds']} m/s, τ {s['taus']} and the "
              f"{s['generated_steps']} generated latent steps at {s['rate']:g} Hz); overrides: "
              f"{' '.join(s['overrides']) or '(none)'}", "",
-             "| weights | contrast | conditioner | blocks (mean) | output layer |", "|---|---|---:|---:|---:|"]
+             "| weights | contrast | Fourier features, distance | AdaLN vector, relative "
+             "| blocks' modulation, relative (mean over blocks) | … absolute | output layer, relative |",
+             "|---|---|---:|---:|---:|---:|---:|"]
     for folder, contrasts in result["weights"].items():
         for name, reading in contrasts.items():
-            cells = [reading["summary"][key] for key in ("conditioner", "blocks_mean", "output")]
+            cells = [reading["summary"][key]
+                     for key in ("features", "conditioner", "blocks_mean", "blocks_mean_change", "output")]
             lines.append(f"| {folder} | {name} ({' − '.join(reading['commands'])}) | "
                          + " | ".join(f"{c['mean']:.4f} [{c['min']:.4f}, {c['max']:.4f}]" for c in cells) + " |")
     return "\n".join(lines)

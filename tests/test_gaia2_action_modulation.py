@@ -8,6 +8,7 @@ import json
 import pytest
 import torch
 
+from gaia_app.models.gaia2.conditioning import WorldConditions
 from gaia_app.models.gaia2.latent_world_model import LatentWorldModel
 from gaia_app.pipelines.gaia1_inputs import SPEED_PRESETS
 from gaia_app.protocols.gaia2_action_modulation import action_modulation, modulation_contrast, step_actions
@@ -44,6 +45,7 @@ def test_the_contrast_is_zero_for_equal_commands_and_where_the_embedding_ignores
     assert zero["conditioner"].abs().max() == 0 and zero["blocks"].abs().max() == 0
     readings = action_modulation(net, COMMANDS, [6.0, 12.0], 2, 4, 12.5, [0.0, 0.5])
     assert readings["speed"]["commands"] == ["accelerate/straight", "brake/straight"]
+    assert len(readings["speed"]["blocks"]) == 2 and len(readings["speed"]["blocks"][0]) == 2  # [speed][τ][step][block]
     assert readings["curvature"]["commands"] == ["keep/left", "keep/right"]
     assert all(readings[name]["summary"][key]["min"] > 0 for name in readings for key in ("conditioner", "blocks_mean"))
     with torch.no_grad():  # the first action layer blind to the curvature half of the Fourier features
@@ -51,6 +53,32 @@ def test_the_contrast_is_zero_for_equal_commands_and_where_the_embedding_ignores
     blind = action_modulation(net, COMMANDS, [6.0, 12.0], 2, 4, 12.5, [0.0, 0.5])
     assert blind["curvature"]["summary"]["blocks_mean"]["max"] == 0
     assert blind["speed"]["summary"]["blocks_mean"]["min"] > 0
+
+
+def test_the_readout_recomputes_the_forward_pass_adaln_vector_and_its_changes_by_hand():
+    """The readout's c is what `adaln` feeds the blocks; with 3 flow times and 2 steps (k ≠ g) every entry lands in
+    its (τ, step, block) place, the relative change divides by the mid command's modulation, the absolute one not."""
+    net = trained_like_net()
+    actions = step_actions(COMMANDS, 10.0, 2, 4, 12.5)
+    high, low, taus = actions[1], actions[0], [0.0, 0.4, 0.9]
+    eye = torch.eye(3)[None].expand(1, 3, 3, 3)
+    extrinsics = torch.eye(4)[None, None].expand(1, 3, 4, 4)
+    cond = WorldConditions(eye, extrinsics, (32, 64), actions=high[None].float())
+    with torch.no_grad():
+        forward_c = net.conditioner.adaln(torch.full((1, 2), 0.4), cond, {"action": torch.ones(1, dtype=torch.bool)})
+        c = {name: net.conditioner.tau_embedding(torch.tensor([[0.4]]))
+             + net.conditioner.action_embedding(a.float())[None] for name, a in (("high", high), ("low", low))}
+        c["mid"] = net.conditioner.tau_embedding(torch.tensor([[0.4]])) + net.conditioner.action_embedding(
+            ((high + low) / 2).float())[None]
+        block = net.blocks[1].modulation
+        relative = (block(c["high"]) - block(c["low"])).norm(dim=-1) / block(c["mid"]).norm(dim=-1)
+        absolute = (block(c["high"]) - block(c["low"])).norm(dim=-1)
+    torch.testing.assert_close(forward_c, c["high"])
+    reading = modulation_contrast(net, high, low, taus)
+    assert reading["blocks"].shape == reading["blocks_change"].shape == (3, 2, 3) and reading["features"].shape == (2,)
+    torch.testing.assert_close(reading["blocks"][1, :, 1], relative[0].double(), rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(reading["blocks_change"][1, :, 1], absolute[0].double(), rtol=1e-5, atol=1e-7)
+    assert reading["features"][1] > reading["features"][0] > 0  # braking and accelerating diverge step by step
 
 
 def test_bad_settings_are_refused():
@@ -67,6 +95,7 @@ def test_the_benchmark_reads_the_shipped_weights_and_writes_its_table(tmp_path):
     assert set(reading) == {"speed", "curvature"}
     assert result["settings"]["generated_steps"] >= 1 and result["settings"]["rate"] > 0
     assert reading["curvature"]["summary"]["conditioner"]["mean"] > 0
+    assert reading["speed"]["summary"]["features"]["mean"] > 0
     written = json.loads((tmp_path / "action_modulation.json").read_text())
     assert written["weights"]["gaia2"]["speed"]["commands"] == reading["speed"]["commands"]
     assert "| gaia2 | speed (" in (tmp_path / "action_modulation.md").read_text()

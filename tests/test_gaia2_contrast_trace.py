@@ -158,3 +158,19 @@ def test_the_strong_and_weak_shares_split_the_real_contrast_by_where_it_is_large
     assert strong_cells(real).shape == (2, 2, 1, 4, 8) and strong_cells(real)[..., 3, :].all()
     assert not strong_cells(real)[..., :3, :].any()
     assert values["share"][1] == pytest.approx(strong_energy(real), rel=1e-9) and strong_energy(real) > 0.99
+
+
+def test_the_split_recomposes_the_share_and_picks_a_quarter_of_each_steps_cells_even_with_ties() -> None:
+    """share = real_strong·share_strong + (1 − real_strong)·share_weak exactly; the strong cells are a quarter of every
+    generated step's cells, so a step whose contrast is 100× smaller still has its own; all-zero ties pick a quarter."""
+    real = torch.randn(3, 2, 4, 4, 8, dtype=torch.float64)
+    real[:, 0] *= 0.01  # the first step's contrast far smaller than the second's (a speed command's t²)
+    trace = torch.randn(5, *real.shape, dtype=torch.float64)
+    values = projections(trace, real)
+    fraction = strong_energy(real)
+    torch.testing.assert_close(values["share"], fraction * values["share_strong"]
+                               + (1 - fraction) * values["share_weak"])
+    strong = strong_cells(real)
+    assert strong[:, 0].sum() == strong[:, 1].sum() == 3 * 4 * 8 // 4
+    ties = strong_cells(torch.zeros(1, 2, 4, 4, 8, dtype=torch.float64))
+    assert ties.sum() == 2 * 4 * 8 // 4

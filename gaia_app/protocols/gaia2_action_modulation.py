@@ -10,8 +10,10 @@ picture only through how much it changes these. For the two commands of a contra
 left − right curvature, chosen by `contrast_pairs` as the action table chooses them) from one start speed, at each
 generated latent step and flow time τ:
 
+    features    = |φ(high) − φ(low)|: the distance of the Fourier features the action MLP reads (no weights);
     conditioner = |c(high) − c(low)| ÷ |c(mid)|        mid: the two commands' mean action;
-    block b     = |m_b(c(high)) − m_b(c(low))| ÷ |m_b(c(mid))|, b = 1 … B and the output layer;
+    block b     = |m_b(c(high)) − m_b(c(low))| ÷ |m_b(c(mid))|, b = 1 … B and the output layer (relative), and
+                  the numerator alone (absolute: a net whose modulations grow also grows its |m_b(c(mid))|);
 
 0 where the modulation ignores the command. No data, no sampling: the numbers are read off the net's weights for
 the actions the action table commands (`future_actions`, averaged over each latent step's frames as the latent
@@ -59,7 +61,8 @@ def relative_change(high: torch.Tensor, low: torch.Tensor, mid: torch.Tensor) ->
 @torch.no_grad()
 def modulation_contrast(net: torch.nn.Module, high: torch.Tensor, low: torch.Tensor, taus: Sequence[float]
                         ) -> dict[str, torch.Tensor]:
-    """{"conditioner": (k, g), "blocks": (k, g, B + 1)} for the actions (g, 2) of two commands (module docstring)."""
+    """{"features": (g,), "conditioner": (k, g), "blocks" and "blocks_change": (k, g, B + 1)} for the actions (g, 2) of
+    two commands (module docstring); the last of the B + 1 is the output layer."""
     conditioner = net.conditioner
     param = next(net.parameters())
     tau = torch.tensor(list(taus), dtype=param.dtype)[:, None, None]  # (k, 1, 1): broadcast over the steps
@@ -67,15 +70,20 @@ def modulation_contrast(net: torch.nn.Module, high: torch.Tensor, low: torch.Ten
     embedded = {name: start + conditioner.action_embedding(actions.to(param.dtype))[None]  # (k, g, d)
                 for name, actions in (("high", high), ("low", low), ("mid", (high + low) / 2))}
     mods = {name: modulations(net, c) for name, c in embedded.items()}  # (B + 1, k, g, 9·d)
-    return {"conditioner": relative_change(embedded["high"], embedded["low"], embedded["mid"]).double(),
-            "blocks": relative_change(mods["high"], mods["low"], mods["mid"]).permute(1, 2, 0).double()}
+    features = conditioner.action_features(high.to(param.dtype)) - conditioner.action_features(low.to(param.dtype))
+    return {"features": features.norm(dim=-1).double(),
+            "conditioner": relative_change(embedded["high"], embedded["low"], embedded["mid"]).double(),
+            "blocks": relative_change(mods["high"], mods["low"], mods["mid"]).permute(1, 2, 0).double(),
+            "blocks_change": (mods["high"] - mods["low"]).norm(dim=-1).permute(1, 2, 0).double()}
 
 
 def action_modulation(net: torch.nn.Module, commands: Sequence[Sequence[str]], start_speeds: Sequence[float],
                       steps: int, frames_per_step: int, rate: float, taus: Sequence[float]) -> dict[str, Any]:
-    """Per contrast (speed, curvature): the commands compared, the conditioner's and each block's relative change
-    ([start speed][τ][step], and [..][block] for the blocks), and their means over start speeds, τ and steps (with
-    the smallest and largest of the grid) for the conditioner, the blocks' mean and the output layer."""
+    """Per contrast (speed, curvature): the commands compared; the feature distance ([start speed][step]); the
+    conditioner's relative change ([start speed][τ][step]); each block's relative and absolute change
+    ([start speed][τ][step][block], the output layer last); and their means over start speeds, τ and steps, with the
+    smallest and largest of the grid, for the features, the conditioner, the blocks' mean (relative and absolute) and
+    the output layer (relative)."""
     if not start_speeds or not taus:
         raise ValueError("the action modulation needs at least one start speed and one flow time")
     actions = torch.stack([step_actions(commands, v, steps, frames_per_step, rate) for v in start_speeds], dim=1)
@@ -83,11 +91,14 @@ def action_modulation(net: torch.nn.Module, commands: Sequence[Sequence[str]], s
     out: dict[str, Any] = {}
     for name, (high, low) in zip(CONTRAST_NAMES, pairs):
         grids = [modulation_contrast(net, actions[high, i], actions[low, i], taus) for i in range(len(start_speeds))]
-        conditioner = torch.stack([grid["conditioner"] for grid in grids])  # (n, k, g)
-        blocks = torch.stack([grid["blocks"] for grid in grids])  # (n, k, g, B + 1)
+        stacked = {key: torch.stack([grid[key] for grid in grids]) for key in grids[0]}  # (n, …) each
+        blocks, change = stacked["blocks"], stacked["blocks_change"]  # (n, k, g, B + 1)
         out[name] = {"commands": ["/".join(commands[high]), "/".join(commands[low])],
-                     "conditioner": conditioner.tolist(), "blocks": blocks.tolist(),
-                     "summary": {"conditioner": spread(conditioner), "blocks_mean": spread(blocks[..., :-1].mean(-1)),
+                     **{key: value.tolist() for key, value in stacked.items()},
+                     "summary": {"features": spread(stacked["features"]),
+                                 "conditioner": spread(stacked["conditioner"]),
+                                 "blocks_mean": spread(blocks[..., :-1].mean(-1)),
+                                 "blocks_mean_change": spread(change[..., :-1].mean(-1)),
                                  "output": spread(blocks[..., -1])}}
     return out
 

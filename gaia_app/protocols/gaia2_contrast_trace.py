@@ -24,10 +24,11 @@ This readout stays in the world model's latent space. For each held-out scene an
                edges may be smaller): what D carries of the real contrast at a coarser scale. The real contrast's own
                block means score 1 here, and on `share` they score `real_coarse`, the part of the real contrast's
                energy that survives the projection: a future that moves its scene right but draws it this blurred.
-    share_strong / share_weak = the share over the grid cells (camera, step, row, column; channels summed) that hold
-               the largest quarter of |D_real|² per cell (`STRONG_QUANTILE`), and over the other cells: does the net
-               carry the command where the real picture moves most (the ground near the ego for speed) or nowhere?
-               The real contrast's energy in its strong cells is `real_strong`.
+    share_strong / share_weak = the share over the quarter of the grid cells (`STRONG_QUANTILE`; cameras, rows and
+               columns of each generated step, channels summed) with the largest |D_real|², and over the other cells:
+               does the net carry the command where the real latents change most, or nowhere? `real_strong` is the
+               fraction of the real contrast's energy in its strong cells. Per scene, share = real_strong·share_strong
+               + (1 − real_strong)·share_weak, so when real_strong is near 1 the split says little beyond `share`.
 
 Reading it: if the conditional mean (k = 0, unguided) carries much of D_real and the samples little, the sampler
 loses the command; if both carry little, the net has not learnt it, and sampling cannot bring it back. A perfect
@@ -39,12 +40,14 @@ mean carries from what guidance adds. Per-scene values, with 95 % intervals over
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from contextlib import contextmanager
 from typing import Any, Iterator
 
 import numpy as np
 import torch
+from einops import rearrange
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
@@ -125,10 +128,15 @@ def projections(trace: torch.Tensor, real: torch.Tensor, patch: int = 1) -> dict
 
 
 def strong_cells(real: torch.Tensor) -> torch.Tensor:
-    """(v, g, 1, h, w) bool: the grid cells of a real contrast (v, g, C, h, w) whose energy summed over channels is at
-    or above its `STRONG_QUANTILE` quantile over all cells."""
-    energy = real.double().square().sum(dim=-3, keepdim=True)
-    return energy >= torch.quantile(energy.flatten(), STRONG_QUANTILE)
+    """(v, g, 1, h, w) bool: in each latent step of a real contrast (v, g, C, h, w), the ⌈(1 − STRONG_QUANTILE)·n⌉
+    of its n grid cells (cameras × rows × columns) with the largest energy summed over channels. Per step, because a
+    command's contrast grows along the rollout (a speed command's displacement about as t²): pooled over steps, the
+    split would mostly pick the last step. A fixed count, not a threshold: ties cannot make every cell strong."""
+    v, g, _, h, w = real.shape
+    energy = rearrange(real.double().square().sum(dim=-3), "v g h w -> g (v h w)")
+    count = math.ceil((1 - STRONG_QUANTILE) * energy.shape[1])
+    strong = torch.zeros_like(energy, dtype=torch.bool).scatter_(1, energy.topk(count, dim=1).indices, True)
+    return rearrange(strong, "g (v h w) -> v g 1 h w", v=v, h=h, w=w)
 
 
 def split_shares(trace: torch.Tensor, real: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -299,4 +307,5 @@ def markdown(trace: dict[str, Any], name: str) -> list[str]:
                        for metric, c in trace["real_strong"].items())
     return [*lines, "", f"uniform share of the real contrasts themselves: {real}",
             f"energy of the real contrasts left after pooling (what a blurred but right future could carry): {coarse}",
-            f"energy of the real contrasts in their strong cells (the top quarter of cells): {strong}"]
+            f"fraction of the real contrasts' energy in their strong cells (the top {1 - STRONG_QUANTILE:.0%} of each "
+            f"step's cells): {strong}"]

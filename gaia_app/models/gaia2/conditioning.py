@@ -231,9 +231,12 @@ class WorldConditioner(nn.Module):
 
     def action_embedding(self, actions: torch.Tensor) -> torch.Tensor:
         """(…, d) the ego action's part of the AdaLN vector; actions (…, 2) speed m/s and curvature 1/m."""
+        return self.action(self.action_features(actions))
+
+    def action_features(self, actions: torch.Tensor) -> torch.Tensor:
+        """(…, d) the Fourier features the action MLP reads: speed in m/s, curvature in 1/(100 m), d/2 each."""
         speed, curvature = actions[..., 0], actions[..., 1]
-        feats = torch.cat([fourier(speed, self.dim // 2, 1.0), fourier(curvature, self.dim // 2, 100.0)], dim=-1)
-        return self.action(feats)
+        return torch.cat([fourier(speed, self.dim // 2, 1.0), fourier(curvature, self.dim // 2, 100.0)], dim=-1)
 
     def camera_features(self, cond: WorldConditions) -> torch.Tensor:
         """(b, v, 16): focal lengths and principal point over the image size, rotation and translation (m)."""
