@@ -59,6 +59,13 @@ ARMS = {
     "paper_onsets_p1": ("gaia2/road_users/world_model_s4_paper_gpu",
                         ("model.net.patch_size=1", "data.window_sampling=action_change", "data.change_after=2",
                          "data.train_meta={open_loop:true}")),
+    # the onset arm with 6-step training windows (the cache's clips have 8; onsets looked for after step 2): a
+    # commanded speed difference displaces the picture about as t², so longer windows hold far more of its contrast,
+    # and the net's modulation carries speed 3.6-4.4× more weakly than curvature at 2×-8× the CPU budget
+    # (docs/paper_faithful.md, "How far each command moves the AdaLN modulation"); 1.5× the tokens a window; opt-in
+    "paper_onsets_w6": ("gaia2/road_users/world_model_s4_paper_gpu",
+                        ("data.steps=6", "data.window_sampling=action_change", "data.change_after=2",
+                         "data.train_meta={open_loop:true}")),
 }
 # the study's clips (docs/paper_faithful.md): 960 of 32 frames on the 3-camera rig, half driven, 16 held out
 CLIPS = ["data=synthetic_rig", "data.source.num_clips=960", "data.source.clip_len=32", "data.source.driven_share=0.5",

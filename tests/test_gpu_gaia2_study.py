@@ -39,6 +39,10 @@ def test_each_arm_gets_its_experiment_budget_and_options(study, tmp_path: Path) 
     fine = compose_config("train", [f"experiment={experiment}", *extra], tmp_path / "onsets_p1")
     assert fine.model.net.patch_size == 1 and composed.model.net.patch_size == 2
     assert fine.data.window_sampling == "action_change" and not fine.model.net.action_raster
+    experiment, extra = study.ARMS["paper_onsets_w6"]
+    long = compose_config("train", [f"experiment={experiment}", *extra], tmp_path / "onsets_w6")
+    assert long.data.steps == 6 and composed.data.steps == 4 and long.data.change_after == 2
+    assert "paper_onsets_w6" not in study.parse_args(["--out", str(tmp_path)]).arms  # opt-in
     shortcut = study.train_command("shortcut", 1200, latents, tmp_path / "run", 300, dry=False)
     assert "experiment=gaia2/road_users/world_model_s4_gpu" in shortcut
     assert not any(a.startswith("model.net.agent_position") for a in shortcut)
