@@ -169,3 +169,26 @@ def test_gaia1_shortcut_arm_at_both_cpu_budgets_meets_control_that_the_paper_arm
             assert point[metric][0] <= study["targets"][metric], (point["budget"], metric)
         assert abs(two[metric][0] - one[metric][0]) < min(one[metric][1], two[metric][1]), metric
         assert paper_two[metric][0] - paper_two[metric][1] > two[metric][0] + two[metric][1], metric
+
+
+def test_gaia1_paper_arm_guidance_chosen_on_a_validation_world_does_not_bring_the_speed() -> None:
+    """The 2× paper arm's action guidance (docs/paper_faithful.md, "The paper's own guidance lever"): the scale the
+    rule picks from the validation world's readings is the one scored, and on the held-out world 7070 it leaves the
+    speed error above its target with a paired change whose interval holds 0, while curvature meets its target."""
+    doc = (ROOT / "docs" / "paper_faithful.md").read_text()
+    point = next(p for p in load_benchmark("paper_faithful_figure").load_study()["gaia1"]["points"]
+                 if p["arm"] == "paper" and p["budget"] == "CPU ×2, 112 tokens/frame")
+    chosen, section = point["chosen_guidance"], section_of(doc, point["source"])
+    validation = chosen["validation"]
+    eligible = [s for s, (mean, _) in validation["curvature"].items() if mean <= validation["targets"]["curvature"]]
+    assert float(min(eligible, key=lambda s: validation["speed"][s][0])) == chosen["scale"] == 5
+    for metric, digits in (("speed", 3), ("curvature", 4)):
+        for mean, half in validation[metric].values():
+            assert f"{mean:.{digits}f} ± {half:.{digits}f}" in section, ("validation", metric)
+    scored = chosen["scored"]["7070"]
+    for reading in ("chosen", "protocol_scale"):
+        (speed, s_half), (curvature, c_half) = scored[reading]["speed"], scored[reading]["curvature"]
+        assert f"{speed:.3f} ± {s_half:.3f}" in section and f"{curvature:.4f} ± {c_half:.4f}" in section, reading
+        assert speed > scored["targets"]["speed"] and curvature <= scored["targets"]["curvature"], reading
+    _, low, high = scored["chosen_minus_protocol"]["speed"]
+    assert low < 0 < high
