@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -38,9 +39,13 @@ ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "docs" / "paper_faithful_study.json"
 # paper_onsets: the paper's conditioning trained on other data choices the paper leaves open (GAIA-2: the open-loop
 # clips, windows drawn at command onsets; docs/paper_faithful.md, "Command onsets in the training windows")
+# paper_wide: the paper's conditioning with a budget spent on width and depth instead of windows (GAIA-1:
+# docs/paper_faithful.md, "Size instead of windows")
 ARMS = {"paper": ("tab:blue", "paper-faithful"), "shortcut": ("tab:orange", "shortcuts (ours)"),
-        "paper_onsets": ("tab:purple", "paper-faithful, onset windows")}
-DODGE = {"paper": 10 ** -0.02, "shortcut": 10 ** 0.02, "paper_onsets": 1.0}  # arms of one budget drawn apart
+        "paper_onsets": ("tab:purple", "paper-faithful, onset windows"),
+        "paper_wide": ("tab:cyan", "paper-faithful, wider and deeper")}
+# arms of one budget drawn apart
+DODGE = {"paper": 10 ** -0.02, "shortcut": 10 ** 0.02, "paper_onsets": 1.0, "paper_wide": 1.0}
 FLAT_DECADES = 6  # a crossing further than this many decades past the largest budget reads "flat"
 REQUIRED = {"gaia1": ("arm", "budget", "flops", "speed", "curvature", "text"),
             "gaia2": ("arm", "budget", "flops", "speed", "curvature", "agent_iou")}
@@ -164,7 +169,7 @@ def finish(fig: Figure, axes: Sequence[Axes], family: dict[str, Any], name: str)
         ax.set_xlabel("training FLOPs")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(title + "; ".join(seen))
+    fig.suptitle(textwrap.fill(title + "; ".join(seen), width=170))  # four budgets outgrow one line
     fig.tight_layout()
     return fig
 

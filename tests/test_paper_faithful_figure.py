@@ -192,3 +192,24 @@ def test_gaia1_paper_arm_guidance_chosen_on_a_validation_world_does_not_bring_th
         assert speed > scored["targets"]["speed"] and curvature <= scored["targets"]["curvature"], reading
     _, low, high = scored["chosen_minus_protocol"]["speed"]
     assert low < 0 < high
+
+
+def test_gaia1_paper_arm_spending_its_budget_on_size_gains_no_speed_and_loses_curvature_to_windows() -> None:
+    """The GAIA-1 paper arm at d 160 × 5 layers on the CPU budget's windows (docs/paper_faithful.md, "Size instead of
+    windows"): for less compute than the 2× arm, its speed error stays above the target on both worlds with paired
+    differences whose intervals hold 0, while its curvature error is above the 2× arm's on both worlds."""
+    study = load_benchmark("paper_faithful_figure").load_study()["gaia1"]
+    points = {(p["arm"], p["budget"]): p for p in study["points"]}
+    wide = next(p for p in study["points"] if p["arm"] == "paper_wide")
+    two = points[("paper", "CPU ×2, 112 tokens/frame")]
+    assert 0.8 < wide["flops"] / two["flops"] < 1.0
+    assert wide["speed"][0] > study["targets"]["speed"]
+    assert wide["second_world"]["7070"]["speed"][0] > two["chosen_guidance"]["scored"]["7070"]["targets"]["speed"]
+    for world, differences in wide["minus_paper_2x"].items():
+        _, low, high = differences["speed"]
+        assert low < 0 < high, world
+        _, low, _ = differences["curvature"]
+        assert low > 0, world
+    section = section_of((ROOT / "docs" / "paper_faithful.md").read_text(), wide["source"])
+    mean, half = wide["second_world"]["7070"]["speed"]
+    assert f"{mean:.3f} ± {half:.3f}" in section
