@@ -251,12 +251,15 @@ class TokenCacheDataModule(L.LightningDataModule):
         seq_len: steps per window (GAIA-1 T = 26). stride: steps between window starts.
         frame_stride: keep every k-th step (e.g. 4 for 25 → 6.25 Hz; 3 for commaVQ's 20 → 6.67 Hz).
         val_fraction: share of segments (or of the only segment's tail) held out.
+        window_sampling, change_after: where training windows start ("uniform", or "action_change": ∝ how much the
+            command changes after `change_after` steps; token_cache.TokenWindows). Validation windows stay uniform.
     """
 
     def __init__(self, path: str, seq_len: int = 16, stride: int = 1, frame_stride: int = 1, val_fraction: float = 0.1,
-                 batch_size: int = 8, num_workers: int = 0):
+                 batch_size: int = 8, num_workers: int = 0, window_sampling: str = "uniform", change_after: int = 4):
         super().__init__()
         self.path, self.seq_len, self.stride, self.frame_stride = path, seq_len, stride, frame_stride
+        self.window_sampling, self.change_after = window_sampling, change_after
         self.val_fraction = val_fraction
         self.batch_size = check_count(batch_size, "data.batch_size")
         self.num_workers = check_count(num_workers, "data.num_workers", minimum=0)
@@ -268,7 +271,8 @@ class TokenCacheDataModule(L.LightningDataModule):
         segments = [load_segment(p, self.frame_stride) for p in find_segments(self.path)]
         train, val = split_spans(segments, self.val_fraction, self.seq_len)
         self.vocab_size = int(max(s.tokens.max() for s in segments)) + 1
-        self.train_set = TokenWindows(segments, train, self.seq_len, self.stride)
+        self.train_set = TokenWindows(segments, train, self.seq_len, self.stride, self.window_sampling,
+                                      self.change_after)
         self.val_set = TokenWindows(segments, val, self.seq_len, self.seq_len)
 
     def train_dataloader(self) -> DataLoader:

@@ -24,10 +24,12 @@ import torch
 from torch.utils.data import Dataset
 
 from gaia_app.data.clip import ClipError
+from gaia_app.data.latent_windows import action_changes
 from gaia_app.data.names import inside
 from gaia_app.utils.run_dir import atomic_save_npy, atomic_write_text
 
 SIDECARS = (".actions.npy", ".timestamps.npy", ".text.json")
+WINDOW_SAMPLING = ("uniform", "action_change")
 
 
 @dataclass
@@ -139,19 +141,35 @@ class TokenWindows(Dataset):
 
     `spans` lists (segment index, first step, last step exclusive) regions to cut windows from,
     so that train and validation can use disjoint parts of one segment.
+
+    `window_sampling`: "uniform" serves item i from its own start; "action_change" (ours, the GAIA-2 onset sampler of
+    latent_windows.py applied to GAIA-1 windows) keeps item i's span, so each span is visited as often as under
+    "uniform", and draws the start within it ∝ the square of how far the mean command (acceleration, curvature) of
+    the window's steps from `change_after` on differs from that of the steps before (`action_change_weights`).
+    `change_after` is a rollout's context frames (GAIA-1 §4.2 conditions on past frames; controllability: 4).
     """
 
-    def __init__(self, segments: list[TokenSegment], spans: list[tuple[int, int, int]], seq_len: int, stride: int):
-        self.segments, self.seq_len = segments, seq_len
-        self.index = [(s, start) for s, lo, hi in spans for start in range(lo, hi - seq_len + 1, stride)]
+    def __init__(self, segments: list[TokenSegment], spans: list[tuple[int, int, int]], seq_len: int, stride: int,
+                 window_sampling: str = "uniform", change_after: int = 4):
+        if window_sampling not in WINDOW_SAMPLING:
+            raise ValueError(f"data.window_sampling={window_sampling!r}: expected one of {WINDOW_SAMPLING}")
+        self.segments, self.spans, self.seq_len = segments, spans, seq_len
+        self.index = [(k, start) for k, (_, lo, hi) in enumerate(spans)
+                      for start in range(lo, hi - seq_len + 1, stride)]
         if not self.index:
             raise ClipError(f"token cache: no window of {seq_len} steps fits in spans {spans}")
+        self.start_weights: list[torch.Tensor] | None = None
+        if window_sampling == "action_change":
+            self.start_weights = token_action_change_weights(segments, spans, seq_len, change_after)
 
     def __len__(self) -> int:
         return len(self.index)
 
     def __getitem__(self, i: int) -> dict[str, Any]:
-        s, start = self.index[i]
+        k, start = self.index[i]
+        s, lo = self.spans[k][0], self.spans[k][1]
+        if self.start_weights is not None:
+            start = lo + int(torch.multinomial(self.start_weights[k], 1).item())
         seg = self.segments[s]
         item = {"tokens": torch.from_numpy(seg.tokens[start : start + self.seq_len])}
         if seg.actions is not None:
@@ -162,6 +180,37 @@ class TokenWindows(Dataset):
         if seg.text is not None:
             item["text"] = list(seg.text[start : start + self.seq_len])
         return item
+
+
+def segment_commands(actions: np.ndarray) -> np.ndarray:
+    """(T, 2) speed (m/s), curvature (1/m) per step → (T, 2) (speed change per step, curvature): the command a step
+    carries out. The speed's change rather than the speed: a constant braking changes the speed in every window after
+    its onset, its rate only at the onset. The first step takes the second's change."""
+    speed = actions[:, 0].astype(np.float64)
+    change = np.diff(speed, prepend=speed[0] if len(speed) < 2 else 2 * speed[0] - speed[1])
+    return np.stack([change, actions[:, 1].astype(np.float64)], axis=1)
+
+
+def token_action_change_weights(segments: list[TokenSegment], spans: list[tuple[int, int, int]], seq_len: int,
+                                change_after: int) -> list[torch.Tensor]:
+    """Per span, (starts,) float64 probabilities of its window starts ∝ `action_changes` ** 2 of its commands, each
+    component in units of its spread over all spans; a span whose command never changes gets uniform starts.
+    ClipError naming a segment without actions; ValueError when `change_after` is outside [1, seq_len − 1]."""
+    if not 1 <= change_after < seq_len:
+        raise ValueError(f"data.change_after={change_after}: expected a number of steps in [1, seq_len − 1 = "
+                         f"{seq_len - 1}]")
+    missing = sorted({segments[s].name for s, _, _ in spans if segments[s].actions is None})
+    if missing:
+        raise ClipError(f"data.window_sampling=action_change needs actions; token segments {missing[:5]} have no "
+                        f"'.actions.npy' sidecar")
+    per_span = [segment_commands(segments[s].actions[lo:hi]) for s, lo, hi in spans]
+    spread = np.concatenate(per_span).std(0) + 1e-6
+    weights = []
+    for commands in per_span:
+        change = action_changes(commands, seq_len, change_after, spread) ** 2
+        total = change.sum()
+        weights.append(torch.from_numpy(change / total if total > 0 else np.full_like(change, 1 / len(change))))
+    return weights
 
 
 def split_spans(segments: list[TokenSegment], val_fraction: float, seq_len: int) -> tuple[list, list]:
