@@ -91,3 +91,26 @@ def test_the_datamodule_samples_training_windows_at_changes_and_validates_unifor
     onsets = [int((speed < 20.0).float().argmax()) for speed in speeds]
     # the onset sits at the window's step 3..5 in 3 of 9 uniform windows; ∝ the change squared in about 0.6 of them
     assert np.mean([3 <= p <= 5 for p in onsets]) > 0.45
+
+
+def test_token_window_onsets_gives_the_expected_contrast_under_each_sampling(tmp_path: Path) -> None:
+    """benchmarks/token_window_onsets.py: one segment braking 0.6 m/s per step from step 10, one steady. The braking
+    segment's 9 uniform windows hold the onset at their steps 10 − s; the expected contrast of the change per step is
+    the mean over them (exact, from the start probabilities), the action_change one weighs them by its square."""
+    from tests.conftest import load_benchmark
+
+    onsets = load_benchmark("token_window_onsets")
+    for name, onset in (("a_brakes", 10), ("b_steady", None), ("c_val", 10)):
+        segment = braking_segment(name, onset)
+        np.save(tmp_path / f"{name}.npy", segment.tokens)
+        np.save(tmp_path / f"{name}.actions.npy", segment.actions)
+    result = onsets.main(["--tokens", str(tmp_path), "--val-fraction", "0.34", "--out", str(tmp_path)])
+    assert result["training_spans"] == 2
+    position = np.arange(10, 10 - (STEPS - SEQ + 1), -1)  # the onset's step in the window starting at 0..8
+    contrast = np.where(position >= AFTER, 0.6 * (SEQ - position) / (SEQ - AFTER), 0.6 * position / AFTER)
+    speed = "speed change per step (m/s)"
+    uniform, changed = result["expected_contrast"]["uniform"], result["expected_contrast"]["action_change"]
+    assert uniform[speed] == pytest.approx(contrast.mean() / 2, rel=1e-4)  # the steady span adds 0
+    assert changed[speed] == pytest.approx((contrast ** 3).sum() / (contrast ** 2).sum() / 2, rel=1e-4)
+    assert uniform["curvature (1/m)"] == changed["curvature (1/m)"] == 0.0
+    assert (tmp_path / "onsets.json").exists()
