@@ -128,10 +128,16 @@ def action_change_weights(clips: Sequence[LatentClip], steps: int, change_after:
     missing = [c.clip_id for c in clips if c.actions is None]
     if missing:
         raise ClipError(f"window_sampling=action_change needs actions; latent clips {missing[:5]} have none")
-    per_step = [step_commands(c) for c in clips]
-    spread = np.concatenate(per_step).std(0) + 1e-6  # each component in units of its spread over the cache
+    return change_probabilities([step_commands(c) for c in clips], steps, change_after)
+
+
+def change_probabilities(per_clip: Sequence[np.ndarray], steps: int, change_after: int) -> list[torch.Tensor]:
+    """Per clip's commands (t, 2), (t − steps + 1,) float64 start probabilities ∝ `action_changes` ** 2, each component
+    in units of its spread over all clips; uniform where the command never changes. Shared by the latent windows and
+    GAIA-1's token windows (token_cache.py)."""
+    spread = np.concatenate(per_clip).std(0) + 1e-6
     weights = []
-    for commands in per_step:
+    for commands in per_clip:
         change = action_changes(commands, steps, change_after, spread) ** 2
         total = change.sum()
         weights.append(torch.from_numpy(change / total if total > 0 else np.full_like(change, 1 / len(change))))

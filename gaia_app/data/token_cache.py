@@ -24,7 +24,7 @@ import torch
 from torch.utils.data import Dataset
 
 from gaia_app.data.clip import ClipError
-from gaia_app.data.latent_windows import action_changes
+from gaia_app.data.latent_windows import change_probabilities
 from gaia_app.data.names import inside
 from gaia_app.utils.run_dir import atomic_save_npy, atomic_write_text
 
@@ -203,14 +203,8 @@ def token_action_change_weights(segments: list[TokenSegment], spans: list[tuple[
     if missing:
         raise ClipError(f"data.window_sampling=action_change needs actions; token segments {missing[:5]} have no "
                         f"'.actions.npy' sidecar")
-    per_span = [segment_commands(segments[s].actions[lo:hi]) for s, lo, hi in spans]
-    spread = np.concatenate(per_span).std(0) + 1e-6
-    weights = []
-    for commands in per_span:
-        change = action_changes(commands, seq_len, change_after, spread) ** 2
-        total = change.sum()
-        weights.append(torch.from_numpy(change / total if total > 0 else np.full_like(change, 1 / len(change))))
-    return weights
+    return change_probabilities([segment_commands(segments[s].actions[lo:hi]) for s, lo, hi in spans], seq_len,
+                                change_after)
 
 
 def split_spans(segments: list[TokenSegment], val_fraction: float, seq_len: int) -> tuple[list, list]:
