@@ -144,8 +144,9 @@ class TokenWindows(Dataset):
 
     `window_sampling`: "uniform" serves item i from its own start; "action_change" (ours, the GAIA-2 onset sampler of
     latent_windows.py applied to GAIA-1 windows) keeps item i's span, so each span is visited as often as under
-    "uniform", and draws the start within it ∝ the square of how far the mean command (acceleration, curvature) of
-    the window's steps from `change_after` on differs from that of the steps before (`action_change_weights`).
+    "uniform", and draws any start within it (`stride` applies to uniform starts only) ∝ the square of how far the
+    mean command (speed change per step, curvature; `segment_commands`) of the window's steps from `change_after` on
+    differs from that of the steps before (`token_action_change_weights`).
     `change_after` is a rollout's context frames (GAIA-1 §4.2 conditions on past frames; controllability: 4).
     """
 
