@@ -292,3 +292,24 @@ def test_gaia1_learning_rate_chosen_on_the_validation_world_meets_curvature_and_
         assert f"{mean:.3f} ± {half:.3f}" in section
     night, of = point["text"]["night"]["prompted"]
     assert night / of >= study["targets"]["prompted"]
+
+
+def test_a_second_seed_of_the_chosen_rate_replicates_curvature_and_not_speed() -> None:
+    """Two runs of the 1e-2 recipe (seeds 42 and 43) on world 6060 (docs/paper_faithful.md, "The second seed"): their
+    curvature errors differ by far less than the rate's gain over 1e-3 and both meet the target, while their speed
+    errors differ with a paired interval clear of 0, as much as the settings' own paired speed differences."""
+    study = load_benchmark("paper_faithful_figure").load_study()["gaia1"]
+    point = next(p for p in study["points"] if p["arm"] == "paper_lr_1e2")
+    seed, choice = point["second_seed"], point["validation_choice"]
+    first = choice["arms"]["1e-2"]
+    assert seed["world"] == choice["world"]
+    assert seed["curvature"][0] <= choice["targets"]["curvature"] and first["curvature"][0] <= choice["targets"]["curvature"]
+    rate_gain = choice["arms"]["1e-3"]["curvature"][0] - first["curvature"][0]
+    assert abs(seed["minus_first_seed"]["curvature"][0]) < rate_gain / 10
+    low, high = seed["minus_first_seed"]["curvature"][1:]
+    assert low < 0 < high
+    mean, low, high = seed["minus_first_seed"]["speed"]
+    assert low > 0 and mean >= abs(first["speed"][0] - choice["arms"]["3e-3"]["speed"][0])
+    assert abs(seed["speed"][0] - first["speed"][0] - mean) < 0.01
+    section = section_of((ROOT / "docs" / "paper_faithful.md").read_text(), point["source"])
+    assert f"{seed['speed'][0]:.3f} ± {seed['speed'][1]:.3f}" in section and f"+{mean:.3f} [+{low:.3f}, +{high:.3f}]" in section
