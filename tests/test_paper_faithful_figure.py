@@ -278,8 +278,9 @@ def test_gaia1_learning_rate_chosen_on_the_validation_world_meets_curvature_and_
     one = next(p for p in study["points"] if p["arm"] == "paper" and p["budget"] == "CPU, 112 tokens/frame")
     assert point["flops"] == one["flops"]
     choice = point["validation_choice"]
-    met = {name: (arm["speed"][0] <= choice["targets"]["speed"]) + (arm["curvature"][0] <= choice["targets"]["curvature"])
-           + arm["text_met"] for name, arm in choice["arms"].items()}
+    targets = choice["targets"]
+    met = {name: (arm["speed"][0] <= targets["speed"]) + (arm["curvature"][0] <= targets["curvature"]) + arm["text_met"]
+           for name, arm in choice["arms"].items()}
     assert max(met, key=lambda n: (met[n], -choice["arms"][n]["speed"][0])) == choice["chosen"] == "1e-2"
     targets = {"5050": (study["targets"]["speed"], study["targets"]["curvature"]), "8080": (2.621, 0.0282)}
     rows = {"5050": point, "8080": point["second_world"]["8080"]}
@@ -303,7 +304,7 @@ def test_a_second_seed_of_the_chosen_rate_replicates_curvature_and_not_speed() -
     seed, choice = point["second_seed"], point["validation_choice"]
     first = choice["arms"]["1e-2"]
     assert seed["world"] == choice["world"]
-    assert seed["curvature"][0] <= choice["targets"]["curvature"] and first["curvature"][0] <= choice["targets"]["curvature"]
+    assert max(seed["curvature"][0], first["curvature"][0]) <= choice["targets"]["curvature"]
     rate_gain = choice["arms"]["1e-3"]["curvature"][0] - first["curvature"][0]
     assert abs(seed["minus_first_seed"]["curvature"][0]) < rate_gain / 10
     low, high = seed["minus_first_seed"]["curvature"][1:]
@@ -312,4 +313,5 @@ def test_a_second_seed_of_the_chosen_rate_replicates_curvature_and_not_speed() -
     assert low > 0 and mean >= abs(first["speed"][0] - choice["arms"]["3e-3"]["speed"][0])
     assert abs(seed["speed"][0] - first["speed"][0] - mean) < 0.01
     section = section_of((ROOT / "docs" / "paper_faithful.md").read_text(), point["source"])
-    assert f"{seed['speed'][0]:.3f} ± {seed['speed'][1]:.3f}" in section and f"+{mean:.3f} [+{low:.3f}, +{high:.3f}]" in section
+    assert f"{seed['speed'][0]:.3f} ± {seed['speed'][1]:.3f}" in section
+    assert f"+{mean:.3f} [+{low:.3f}, +{high:.3f}]" in section
