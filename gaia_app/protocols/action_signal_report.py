@@ -31,6 +31,7 @@ from gaia_app.data.collate import collate_token_windows
 from gaia_app.eval.action_signal import STREAMS, action_signal, markdown
 from gaia_app.models.gaia1.world_model import WorldModel
 from gaia_app.protocols.world_model_report import windows
+from gaia_app.utils.named_paths import parse_named_paths
 from gaia_app.utils.run_dir import atomic_write_text
 
 
@@ -54,17 +55,7 @@ def load_world_model(path: Path) -> tuple[WorldModel, torch.nn.Module | None]:
 
 
 def parse_models(specs: list[str]) -> dict[str, Path]:
-    models = {}
-    for spec in specs:
-        name, sep, path = spec.partition("=")
-        if not sep or not name or not path:
-            raise ValueError(f"--model {spec!r}: expected NAME=PATH")
-        if name in models:
-            raise ValueError(f"--model: the name {name!r} is given twice")
-        if not Path(path).exists():
-            raise FileNotFoundError(f"--model {name}: {path} does not exist")
-        models[name] = Path(path)
-    return models
+    return parse_named_paths(specs, "--model")
 
 
 def window_batches(root: Path, net: WorldModel, count: int, batch: int, text_encoder: torch.nn.Module | None = None

@@ -20,6 +20,7 @@ from typing import Any
 
 import yaml
 
+from gaia_app.utils.named_paths import parse_named_paths
 from gaia_app.utils.run_dir import atomic_write_text
 
 ACTION_TARGETS = ("speed_contrast", "curvature_contrast")
@@ -102,24 +103,12 @@ def markdown(choice: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def parse_arms(specs: list[str]) -> dict[str, Path]:
-    arms: dict[str, Path] = {}
-    for spec in specs:
-        name, sep, path = spec.partition("=")
-        if not sep or not name or not path:
-            raise ValueError(f"--arm {spec!r}: expected NAME=DIR")
-        if name in arms:
-            raise ValueError(f"--arm: the name {name!r} is given twice")
-        arms[name] = Path(path)
-    return arms
-
-
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--arm", action="append", required=True, help="NAME=controllability run folder")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
-    choice = choose({name: load_run(folder) for name, folder in parse_arms(args.arm).items()})
+    choice = choose({name: load_run(folder) for name, folder in parse_named_paths(args.arm, "--arm", "DIR").items()})
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out / "choice.json", json.dumps(choice, indent=2))
     atomic_write_text(args.out / "choice.md", markdown(choice))
