@@ -73,6 +73,11 @@ def summarise(result: dict) -> dict[str, Any]:
                      for key in TEXT_TARGETS}}
 
 
+def chosen_by_rule(readings: dict[str, tuple[int, float]]) -> str:
+    """The name whose (targets met, speed contrast error) ranks first: most targets, then the lower speed error."""
+    return max(readings, key=lambda name: (readings[name][0], -readings[name][1]))
+
+
 def choose(arms: dict[str, tuple[dict, dict]]) -> dict[str, Any]:
     """The winning arm by the rule above, with every arm's summary; refuses runs that differ in protocol."""
     if len(arms) < 2:
@@ -86,8 +91,8 @@ def choose(arms: dict[str, tuple[dict, dict]]) -> dict[str, Any]:
             raise ValueError(f"--arm {name}: its run differs from {names[0]}'s in {differing}; "
                              "arms are compared on one world under one protocol")
     summaries = {name: summarise(result) for name, (result, _) in arms.items()}
-    chosen = max(names, key=lambda n: (sum(summaries[n]["met"].values()), -summaries[n]["speed_contrast"]))
-    return {"chosen": chosen, "protocol": reference, "arms": summaries}
+    readings = {name: (sum(arm["met"].values()), arm["speed_contrast"]) for name, arm in summaries.items()}
+    return {"chosen": chosen_by_rule(readings), "protocol": reference, "arms": summaries}
 
 
 def markdown(choice: dict[str, Any]) -> str:
