@@ -224,6 +224,8 @@ def test_attribute_shares_are_per_sequence_shares_of_frames_on_target() -> None:
 def test_intervals_match_known_values() -> None:
     assert t_quantile(1000) == pytest.approx(1.9623, abs=1e-3) and t_quantile(9) == pytest.approx(2.2622, abs=2e-3)
     assert t_quantile(31) == pytest.approx(2.0395, abs=1e-3)
+    # exact where an interval over 2–4 training runs needs it (tables: 12.706, 4.303, 3.182)
+    assert [round(t_quantile(df), 3) for df in (1, 2, 3)] == [12.706, 4.303, 3.182]
     est = mean_interval([1.0, 2.0, 3.0, 4.0])  # sd 1.291, t(3) = 3.182
     assert est.mean == 2.5 and est.half_width == pytest.approx(3.182 * 1.2910 / 2, rel=1e-2)
     wilson = share_interval(8, 10)  # textbook Wilson interval: [0.490, 0.943]

@@ -50,6 +50,11 @@ def load_run(folder: Path) -> tuple[dict, dict]:
     return json.loads(result.read_text()), {key: _select(settings, key) for key in PROTOCOL_KEYS}
 
 
+def protocol_differences(reference: dict, protocol: dict) -> dict[str, tuple[Any, Any]]:
+    """{key: (reference value, this value)} of the protocol settings in which two runs differ."""
+    return {key: (reference[key], protocol[key]) for key in PROTOCOL_KEYS if reference[key] != protocol[key]}
+
+
 def targets_met(result: dict) -> dict[str, bool]:
     """Which of GAIA-1's four rollout targets one controllability result meets."""
     for section, keys in (("actions", ACTION_TARGETS), ("text", TEXT_TARGETS)):
@@ -85,8 +90,7 @@ def choose(arms: dict[str, tuple[dict, dict]]) -> dict[str, Any]:
     names = list(arms)
     reference = arms[names[0]][1]
     for name in names[1:]:
-        differing = {key: (reference[key], arms[name][1][key]) for key in PROTOCOL_KEYS
-                     if reference[key] != arms[name][1][key]}
+        differing = protocol_differences(reference, arms[name][1])
         if differing:
             raise ValueError(f"--arm {name}: its run differs from {names[0]}'s in {differing}; "
                              "arms are compared on one world under one protocol")
