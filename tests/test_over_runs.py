@@ -15,7 +15,7 @@ from gaia_app.utils.named_paths import parse_grouped_paths, parse_named_paths
 
 
 def _run(root: Path, name: str, speed: list[float], curvature: float = 0.02, world: int = 6060,
-         speed_target: float = 2.5) -> Path:
+         speed_target: float = 2.5, scale: float = 1.5) -> Path:
     """A controllability run folder whose speed errors per context are `speed`."""
     folder = root / name
     folder.mkdir()
@@ -29,7 +29,7 @@ def _run(root: Path, name: str, speed: list[float], curvature: float = 0.02, wor
                                 "floor": {k: {"mean": 0.1} for k in text}}}}
     (folder / "controllability.json").write_text(json.dumps(result))
     config = {"seed": 42, "context": {"seed": world, "frames": 4}, "seconds": 1.25,
-              "controllability": {"contexts": len(speed)}, "guidance": {"scale": 1.5, "text_scale": 3}}
+              "controllability": {"contexts": len(speed)}, "guidance": {"scale": scale, "text_scale": 3}}
     (folder / "config_resolved.yaml").write_text(yaml.safe_dump(config))
     return folder
 
@@ -94,3 +94,20 @@ def test_named_and_grouped_paths(tmp_path: Path) -> None:
         parse_named_paths([f"a={x}", f"a={y}"], "--model")
     with pytest.raises(ValueError, match="expected NAME=DIR"):
         parse_grouped_paths(["a"], "--run", "DIR")
+
+
+def test_settings_may_differ_in_a_varied_sampling_key_but_not_within_one(tmp_path: Path) -> None:
+    low = [_run(tmp_path, f"low{i}", [3.0, 3.0], scale=1.5) for i in range(2)]
+    high = [_run(tmp_path, f"high{i}", [2.0, 2.4], scale=3.0) for i in range(2)]
+    args = ["--run", f"x1.5={low[0]}", "--run", f"x1.5={low[1]}", "--run", f"x3={high[0]}", "--run", f"x3={high[1]}"]
+    with pytest.raises(ValueError, match=r"guidance\.scale"):
+        main(args + ["--out", str(tmp_path / "o")])
+    reading = main(args + ["--vary", "guidance.scale", "--out", str(tmp_path / "o")])
+    assert reading["settings"]["x3"]["varied"] == {"guidance.scale": 3.0}
+    assert "guidance.scale" not in reading["protocol"]
+    assert reading["differences"]["x1.5 - x3"]["speed_contrast"]["paired_by_context"]["mean"] == pytest.approx(0.8)
+    mixed = ["--run", f"x1.5={low[0]}", "--run", f"x1.5={high[0]}"]
+    with pytest.raises(ValueError, match=r"x1\.5=.*high0.*guidance\.scale"):
+        main(mixed + ["--vary", "guidance.scale", "--out", str(tmp_path / "o")])
+    with pytest.raises(ValueError, match="not a protocol key"):
+        main(args + ["--vary", "model.depth", "--out", str(tmp_path / "o")])

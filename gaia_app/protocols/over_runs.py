@@ -15,7 +15,9 @@ differed by 0.35 m/s, docs/paper_faithful.md "The second seed"), so each setting
 
 The first setting is compared with each other one: the difference of over-runs means with a Welch interval, and
 the paired-by-context difference of the run-averaged errors. Every run must share the world and the protocol, or
-the reading is refused. Writes over_runs.json and over_runs.md into --out.
+the reading is refused; `--vary KEY` lets settings differ in one protocol key (a sampling setting under comparison,
+e.g. `--vary guidance.scale`), which must still agree within a setting.
+Writes over_runs.json and over_runs.md into --out.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import numpy as np
 from gaia_app.eval.intervals import Estimate, mean_interval, t_quantile
 from gaia_app.protocols.choose_setting import (
     ACTION_TARGETS,
+    PROTOCOL_KEYS,
     TEXT_TARGETS,
     load_run,
     protocol_differences,
@@ -42,16 +45,25 @@ from gaia_app.utils.run_dir import atomic_write_text
 TARGET_AGREEMENT = 1e-9  # runs on one world read one target; a larger difference means another world or probe
 
 
-def check_same_protocol(runs: dict[str, list[tuple[Path, dict, dict]]]) -> dict:
-    """The shared protocol settings of every run; an error names the first run that differs and how."""
+def check_same_protocol(runs: dict[str, list[tuple[Path, dict, dict]]], varied: tuple[str, ...] = ()) -> dict:
+    """The shared protocol settings of every run; an error names the first run that differs and how. A key in
+    `varied` (a sampling setting under comparison, e.g. guidance.scale) may differ between settings, never within
+    one; it is reported per setting."""
+    unknown = set(varied) - set(PROTOCOL_KEYS)
+    if unknown:
+        raise ValueError(f"--vary {sorted(unknown)}: not a protocol key (one of {PROTOCOL_KEYS})")
     (first_path, _, reference), *_ = next(iter(runs.values()))
     for name, group in runs.items():
+        setting_reference = group[0][2]
         for path, _, protocol in group:
-            differing = protocol_differences(reference, protocol)
-            if differing:
-                raise ValueError(f"--run {name}={path}: differs from {first_path} in {differing}; "
+            across = {key: value for key, value in protocol_differences(reference, protocol).items()
+                      if key not in varied}
+            within = {key: value for key, value in protocol_differences(setting_reference, protocol).items()
+                      if key in varied}
+            if across or within:
+                raise ValueError(f"--run {name}={path}: differs from {first_path} in {across or within}; "
                                  "runs are read on one world under one protocol")
-    return reference
+    return {key: value for key, value in reference.items() if key not in varied}
 
 
 def world_target(group: list[tuple[Path, dict, dict]], metric: str) -> float:
@@ -115,10 +127,11 @@ def compare(first: dict, other: dict, groups: tuple[list, list]) -> dict[str, An
     return out
 
 
-def read_runs(runs: dict[str, list[tuple[Path, dict, dict]]]) -> dict[str, Any]:
+def read_runs(runs: dict[str, list[tuple[Path, dict, dict]]], varied: tuple[str, ...] = ()) -> dict[str, Any]:
     """Every setting's reading and the first setting's differences with each other one."""
-    protocol = check_same_protocol(runs)
-    settings = {name: read_setting(group) for name, group in runs.items()}
+    protocol = check_same_protocol(runs, varied)
+    settings = {name: read_setting(group) | {"varied": {key: group[0][2][key] for key in varied}}
+                for name, group in runs.items()}
     names = list(runs)
     differences = {f"{names[0]} - {name}": compare(settings[names[0]], settings[name], (runs[names[0]], runs[name]))
                    for name in names[1:]}
@@ -154,10 +167,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--run", action="append", required=True, help="SETTING=controllability run folder")
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--vary", action="append", default=[],
+                        help="a protocol key the settings may differ in (e.g. guidance.scale), one per --vary")
     args = parser.parse_args(argv)
     groups = parse_grouped_paths(args.run, "--run", "DIR")
     runs = {name: [(path, *load_run(path)) for path in paths] for name, paths in groups.items()}
-    reading = read_runs(runs)
+    reading = read_runs(runs, tuple(args.vary))
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out / "over_runs.json", json.dumps(reading, indent=2))
     atomic_write_text(args.out / "over_runs.md", markdown(reading))
