@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from gaia_app.eval.intervals import mean_interval
 from gaia_app.protocols.choose_setting import chosen_by_rule
 from tests.conftest import load_benchmark
 
@@ -316,3 +317,24 @@ def test_a_second_seed_of_the_chosen_rate_replicates_curvature_and_not_speed() -
     section = section_of((ROOT / "docs" / "paper_faithful.md").read_text(), point["source"])
     assert f"{seed['speed'][0]:.3f} ± {seed['speed'][1]:.3f}" in section
     assert f"+{mean:.3f} [+{low:.3f}, +{high:.3f}]" in section
+
+
+def test_over_three_runs_the_chosen_rate_meets_curvature_and_misses_speed_on_a_fresh_world() -> None:
+    """Every run of both rates on world 9090, scored once (docs/paper_faithful.md, "Speed over seeds"): over runs, 1e-2
+    meets curvature with its whole interval and misses speed by its mean, while single runs fall on both sides of the
+    speed target; 1e-3 misses both; action guidance ×3 moves curvature, not speed."""
+    study = load_benchmark("paper_faithful_figure").load_study()["gaia1"]
+    runs = next(p for p in study["points"] if p["arm"] == "paper_lr_1e2")["over_runs"]
+    targets, chosen, base = runs["targets"], runs["1e-2"], runs["1e-3"]
+    curvature, speed = mean_interval(chosen["curvature"]), mean_interval(chosen["speed"])
+    assert curvature.high <= targets["curvature"] and min(base["curvature"]) > targets["curvature"]
+    assert speed.mean > targets["speed"] and min(chosen["speed"]) <= targets["speed"] < max(chosen["speed"])
+    assert speed.low < targets["speed"] < speed.high  # over runs, the target lies inside the interval
+    assert mean_interval(base["speed"]).mean - speed.mean > 0.5
+    paired = runs["minus_1e-3_paired_by_context"]
+    assert paired["speed"][2] < 0 and paired["curvature"][2] < 0
+    guided = runs["guidance_x3"]["minus_x1.5_paired_by_context"]
+    assert guided["speed"][1] < 0 < guided["speed"][2] and guided["curvature"][2] < 0
+    section = section_of((ROOT / "docs" / "paper_faithful.md").read_text(), runs["source"])
+    assert f"{speed.mean:.3f} [{speed.low:.3f}, {speed.high:.3f}]" in section
+    assert f"{curvature.mean:.4f} [{curvature.low:.4f}, {curvature.high:.4f}]" in section
