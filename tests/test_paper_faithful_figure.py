@@ -338,3 +338,22 @@ def test_over_three_runs_the_chosen_rate_meets_curvature_and_misses_speed_on_a_f
     section = section_of((ROOT / "docs" / "paper_faithful.md").read_text(), runs["source"])
     assert f"{speed.mean:.3f} [{speed.low:.3f}, {speed.high:.3f}]" in section
     assert f"{curvature.mean:.4f} [{curvature.low:.4f}, {curvature.high:.4f}]" in section
+
+
+def test_a_runs_speed_ranking_does_not_carry_between_worlds_while_curvature_does() -> None:
+    """Seeds 43 and 44 against seed 42 of the 1e-2 recipe, paired by context on worlds 6060 and 9090: the speed
+    differences change sign between the worlds, each outside the other world's interval; every run's curvature
+    stays below both worlds' targets and far from every 1e-3 run's."""
+    study = load_benchmark("paper_faithful_figure").load_study()["gaia1"]
+    runs = next(p for p in study["points"] if p["arm"] == "paper_lr_1e2")["over_runs"]
+    differences = runs["speed_minus_seed_42_paired_by_context"]
+    for seed in ("43", "44"):
+        on_6060, low_6060, high_6060 = differences["6060"][seed]
+        on_9090, low_9090, high_9090 = differences["9090"][seed]
+        assert on_6060 * on_9090 < 0
+        assert not low_6060 <= on_9090 <= high_6060 and not low_9090 <= on_6060 <= high_9090
+    validation = runs["validation_world"]
+    chosen = runs["1e-2"]["curvature"] + validation["1e-2"]["curvature"]
+    base = runs["1e-3"]["curvature"] + validation["1e-3"]["curvature"]
+    assert max(chosen) < min(runs["targets"]["curvature"], validation["targets"]["curvature"])
+    assert min(base) - max(chosen) > 0.015
