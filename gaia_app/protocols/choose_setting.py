@@ -112,16 +112,21 @@ def markdown(choice: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def write_reading(out: Path, stem: str, reading: dict[str, Any], text: str) -> None:
+    """<out>/<stem>.json and <stem>.md, each written atomically, and the Markdown printed."""
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / f"{stem}.json", json.dumps(reading, indent=2))
+    atomic_write_text(out / f"{stem}.md", text)
+    print(text)
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--arm", action="append", required=True, help="NAME=controllability run folder")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     choice = choose({name: load_run(folder) for name, folder in parse_named_paths(args.arm, "--arm", "DIR").items()})
-    args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out / "choice.json", json.dumps(choice, indent=2))
-    atomic_write_text(args.out / "choice.md", markdown(choice))
-    print(markdown(choice))
+    write_reading(args.out, "choice", choice, markdown(choice))
     return choice
 
 

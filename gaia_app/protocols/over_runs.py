@@ -23,7 +23,6 @@ Writes over_runs.json and over_runs.md into --out.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -38,9 +37,9 @@ from gaia_app.protocols.choose_setting import (
     load_run,
     protocol_differences,
     summarise,
+    write_reading,
 )
 from gaia_app.utils.named_paths import parse_grouped_paths
-from gaia_app.utils.run_dir import atomic_write_text
 
 TARGET_AGREEMENT = 1e-9  # runs on one world read one target; a larger difference means another world or probe
 
@@ -173,10 +172,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     groups = parse_grouped_paths(args.run, "--run", "DIR")
     runs = {name: [(path, *load_run(path)) for path in paths] for name, paths in groups.items()}
     reading = read_runs(runs, tuple(args.vary))
-    args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out / "over_runs.json", json.dumps(reading, indent=2))
-    atomic_write_text(args.out / "over_runs.md", markdown(reading))
-    print(markdown(reading))
+    write_reading(args.out, "over_runs", reading, markdown(reading))
     return reading
 
 
